@@ -1,0 +1,1 @@
+import lerobot_jept  # noqa: F401
