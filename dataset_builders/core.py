@@ -21,6 +21,7 @@ here, once.
 """
 
 import abc
+import atexit
 import json
 import logging
 import multiprocessing as mp
@@ -29,7 +30,7 @@ import queue
 import shutil
 import time
 from collections import defaultdict
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -57,6 +58,7 @@ CONTENT_FLAGS = (
     "action_repeat",
     "max_episode_steps",
     "episodes_per_shard",
+    "vcodec",
 )
 
 logger = logging.getLogger(__name__)
@@ -84,6 +86,9 @@ class BuildConfig:
         action_repeat: simulator steps per recorded step.
         max_episode_steps: recorded steps before an episode is truncated (and rejected as a failure).
         episodes_per_shard: unit of work and of resumption.
+        vcodec: video codec of the camera stream (``h264`` at the ``veryfast`` preset costs a fifth of the CPU
+            time of LeRobot's default ``libsvtav1``, which matters when rendering on a CPU; ``libsvtav1`` gives
+            smaller files).
         root: folder holding the repos; default ``$HF_LEROBOT_HOME`` (where LeRobot looks for ``repo_id``).
         push_to_hub: push every repo with LeRobot's ``push_to_hub`` at the end.
         private: create the Hub repos as private.
@@ -102,12 +107,17 @@ class BuildConfig:
     action_repeat: int = 2
     max_episode_steps: int = 250
     episodes_per_shard: int = 25
+    vcodec: str = "h264"
     root: str | None = None
     push_to_hub: bool = False
     private: bool = False
 
     def split(self) -> dict[str, list[str]]:
-        return {"demo": list(self.demo_tasks), "video": list(self.video_tasks), "unseen": list(self.unseen_tasks)}
+        return {
+            "demo": list(self.demo_tasks),
+            "video": list(self.video_tasks),
+            "unseen": list(self.unseen_tasks),
+        }
 
     def content_flags(self) -> dict:
         return {name: getattr(self, name) for name in CONTENT_FLAGS}
@@ -201,7 +211,10 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
 
 def plan_shards(cfg: BuildConfig) -> list[Shard]:
     """Every shard of the build, in the order episodes appear in the repos."""
-    jobs = [("demo", cfg.demo_tasks, cfg.episodes_per_task), ("video", cfg.video_tasks, cfg.episodes_per_task)]
+    jobs = [
+        ("demo", cfg.demo_tasks, cfg.episodes_per_task),
+        ("video", cfg.video_tasks, cfg.episodes_per_task),
+    ]
     all_tasks = [*cfg.demo_tasks, *cfg.video_tasks, *cfg.unseen_tasks]
     jobs.append(("prompts", all_tasks, cfg.prompts_per_task))
     shards = []
@@ -244,11 +257,16 @@ _ENV_CACHE: dict = {}  # one live env per process: (simulator name, task, flags)
 def _env_for(sim: Simulator, task: str, cfg: BuildConfig):
     key = (sim.name, task, cfg.image_size, cfg.action_repeat, cfg.max_episode_steps)
     if key not in _ENV_CACHE:
-        for env in _ENV_CACHE.values():
-            env.close()
-        _ENV_CACHE.clear()
+        close_envs()
         _ENV_CACHE[key] = sim.make_env(task, cfg)
     return _ENV_CACHE[key]
+
+
+def close_envs() -> None:
+    """Close this process's cached env (frees its GL context before the GL library is unloaded)."""
+    for env in _ENV_CACHE.values():
+        env.close()
+    _ENV_CACHE.clear()
 
 
 def rollout_expert(env, seed: int, action_bins: int) -> tuple[list[dict], bool]:
@@ -262,7 +280,9 @@ def rollout_expert(env, seed: int, action_bins: int) -> tuple[list[dict], bool]:
     frames = []
     while True:
         action = snap_to_bins(env.expert_action(), action_bins, low, high)
-        frames.append({"observation.image": obs["pixels"], "observation.state": obs["agent_pos"], "action": action})
+        frames.append(
+            {"observation.image": obs["pixels"], "observation.state": obs["agent_pos"], "action": action}
+        )
         obs, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             return frames, bool(info["is_success"])
@@ -273,8 +293,10 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
 
     ``progress(role, episodes, frames, rejected)`` is called after every attempted episode.
     """
+    import av
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    av.logging.set_level(av.logging.ERROR)  # one line per encoded episode otherwise
     paths = BuildPaths(cfg)
     final = paths.shard(shard)
     tmp = final.with_name(final.name + ".tmp")
@@ -291,37 +313,57 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
         robot_type=sim.robot_type,
         use_videos=True,
         streaming_encoding=True,
+        rgb_encoder=encoder_config(cfg.vcodec),
     )
     env = _env_for(sim, shard.task, cfg)
     description = sim.task_description(shard.task)
     kept, attempt, frames_total, seeds = 0, 0, 0, []
-    while kept < shard.num_episodes:
-        seed = shard.seed(cfg.seed, attempt)
-        attempt += 1
-        if attempt > 20 * shard.num_episodes + 20:
-            raise BuildError(
-                f"The {shard.task} expert failed {attempt - 1 - kept} of {attempt - 1} episodes; "
-                f"check the task or raise --max_episode_steps (now {cfg.max_episode_steps})."
-            )
-        frames, success = rollout_expert(env, seed, cfg.action_bins)
-        if not success:
-            progress(shard.role, 0, 0, 1)
-            continue
-        for frame in frames:
-            if not with_actions:
-                frame.pop("action")
-            dataset.add_frame({**frame, "task": description})
-        dataset.save_episode()
-        kept += 1
-        frames_total += len(frames)
-        seeds.append(seed)
-        progress(shard.role, 1, len(frames), 0)
+    # Writing an episode (stats, parquet, video) overlaps with rendering the next one.
+    with ThreadPoolExecutor(max_workers=1) as writer:
+        writing = None
+        while kept < shard.num_episodes:
+            seed = shard.seed(cfg.seed, attempt)
+            attempt += 1
+            if attempt > 20 * shard.num_episodes + 20:
+                raise BuildError(
+                    f"The {shard.task} expert failed {attempt - 1 - kept} of {attempt - 1} episodes; "
+                    f"check the task or raise --max_episode_steps (now {cfg.max_episode_steps})."
+                )
+            frames, success = rollout_expert(env, seed, cfg.action_bins)
+            if not success:
+                progress(shard.role, 0, 0, 1)
+                continue
+            if writing is not None:
+                writing.result()
+            writing = writer.submit(_write_episode, dataset, frames, description, with_actions)
+            kept += 1
+            frames_total += len(frames)
+            seeds.append(seed)
+            progress(shard.role, 1, len(frames), 0)
+        if writing is not None:
+            writing.result()
     dataset.finalize()
     summary = {**asdict(shard), "attempts": attempt, "frames": frames_total, "seeds": seeds}
     (tmp / "shard.json").write_text(json.dumps(summary))
     final.parent.mkdir(parents=True, exist_ok=True)
     os.replace(tmp, final)
     return summary
+
+
+def encoder_config(vcodec: str):
+    from lerobot.configs.video import RGBEncoderConfig
+
+    if vcodec == "h264":
+        return RGBEncoderConfig(vcodec="h264", preset="veryfast")
+    return RGBEncoderConfig(vcodec=vcodec)
+
+
+def _write_episode(dataset, frames: list[dict], task: str, with_actions: bool) -> None:
+    for frame in frames:
+        if not with_actions:
+            frame.pop("action")
+        dataset.add_frame({**frame, "task": task})
+    dataset.save_episode()
 
 
 def _record_in_worker(sim, cfg, shard, progress_queue) -> dict:
@@ -334,6 +376,7 @@ def _record_in_worker(sim, cfg, shard, progress_queue) -> dict:
 def _worker_init() -> None:
     # One render/physics thread per process: the processes are the parallelism.
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    atexit.register(close_envs)
     import torch
 
     torch.set_num_threads(1)
@@ -369,7 +412,10 @@ class ProgressBars:
 def run_shards(sim: Simulator, cfg: BuildConfig, shards: list[Shard], progress) -> list[dict]:
     """Record ``shards`` with ``cfg.num_workers`` processes (in this process when it is 1)."""
     if cfg.num_workers == 1 or len(shards) <= 1:
-        return [record_shard(sim, cfg, shard, progress) for shard in shards]
+        try:
+            return [record_shard(sim, cfg, shard, progress) for shard in shards]
+        finally:
+            close_envs()
     ctx = mp.get_context("spawn")  # a fresh process has no inherited GL context
     with ctx.Manager() as manager:
         progress_queue = manager.Queue()
@@ -401,12 +447,22 @@ def _replace_dir(tmp: Path, final: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _recover_dir(final: Path) -> None:
+    """Undo a swap interrupted between its two renames (the previous complete version comes back)."""
+    old = final.with_name(final.name + ".old")
+    if old.exists() and not final.exists():
+        os.replace(old, final)
+
+
 def _aggregate(sources: list[tuple[str, Path]], repo_id: str, out: Path) -> None:
     from lerobot.datasets.aggregate import aggregate_datasets
 
     shutil.rmtree(out, ignore_errors=True)
     aggregate_datasets(
-        repo_ids=[rid for rid, _ in sources], aggr_repo_id=repo_id, roots=[p for _, p in sources], aggr_root=out
+        repo_ids=[rid for rid, _ in sources],
+        aggr_repo_id=repo_id,
+        roots=[p for _, p in sources],
+        aggr_root=out,
     )
 
 
@@ -416,8 +472,10 @@ def labelled_action_stats(root: Path) -> dict:
     from lerobot.datasets.compute_stats import get_feature_stats
 
     actions = np.concatenate(
-        [np.stack(pd.read_parquet(path, columns=["action"])["action"].to_numpy()) for path in
-         sorted((root / "data").glob("*/*.parquet"))]
+        [
+            np.stack(pd.read_parquet(path, columns=["action"])["action"].to_numpy())
+            for path in sorted((root / "data").glob("*/*.parquet"))
+        ]
     )
     labelled = actions[np.isfinite(actions).all(axis=1)]
     if len(labelled) == 0:
@@ -440,8 +498,12 @@ def build_mix(paths: BuildPaths, action_feature: dict, has_demo: bool, has_video
         nan_actions = np.full((video.meta.total_frames, *action_feature["shape"]), np.nan, dtype=np.float32)
         nan_root = staging / "video_nan"
         shutil.rmtree(nan_root, ignore_errors=True)
-        add_features(video, {"action": (nan_actions, action_feature)}, output_dir=nan_root,
-                     repo_id=paths.repo_id_of("video_nan"))
+        add_features(
+            video,
+            {"action": (nan_actions, action_feature)},
+            output_dir=nan_root,
+            repo_id=paths.repo_id_of("video_nan"),
+        )
         sources.append((paths.repo_id_of("video_nan"), nan_root))
     tmp = staging / "mix"
     _aggregate(sources, paths.repo_id_of("mix"), tmp)
@@ -486,6 +548,8 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
     validate(cfg, sim)
     setup_offscreen_gl()
     paths = BuildPaths(cfg)
+    for role in (*ROLES, "mix"):
+        _recover_dir(paths.repo(role))
     record = _check_existing(paths, cfg, sim) or {}
     paths.work.mkdir(parents=True, exist_ok=True)
     record.update({"simulator": sim.name, "flags": cfg.content_flags()})
@@ -515,7 +579,9 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
         if not role_shards or (assembled.get(role) == names and paths.repo(role).exists()):
             continue
         tmp = paths.work / "staging" / role
-        _aggregate([(paths.shard_repo_id(s), paths.shard(s)) for s in role_shards], paths.repo_id_of(role), tmp)
+        _aggregate(
+            [(paths.shard_repo_id(s), paths.shard(s)) for s in role_shards], paths.repo_id_of(role), tmp
+        )
         _replace_dir(tmp, paths.repo(role))
         assembled[role] = names
         assembled.pop("mix", None)
@@ -579,7 +645,9 @@ def format_summary(summary: dict) -> str:
     lines = [f"{'repo':<40} {'episodes':>9} {'frames':>9} {'rejected':>9} {'size MB':>9}"]
     for info in summary["repos"].values():
         cells = [info[k] if info[k] is not None else "-" for k in ("episodes", "frames", "rejected")]
-        lines.append(f"{info['repo_id']:<40} {cells[0]:>9} {cells[1]:>9} {cells[2]:>9} {info['bytes'] / 1e6:>9.1f}")
+        lines.append(
+            f"{info['repo_id']:<40} {cells[0]:>9} {cells[1]:>9} {cells[2]:>9} {info['bytes'] / 1e6:>9.1f}"
+        )
     rates = ", ".join(f"{t} {r:.0%}" for t, r in summary["expert_success_rate"].items())
     lines.append(f"expert success (kept / attempted): {rates}")
     lines.append(f"time: {summary['total_seconds']:.1f} s (recording {summary['record_seconds']:.1f} s)")

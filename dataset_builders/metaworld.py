@@ -41,7 +41,9 @@ class MetaworldSimulator(Simulator):
 
     def make_env(self, task: str, cfg: BuildConfig) -> mw.JeptMetaworldEnv:
         return mw.JeptMetaworldEnv(
-            task, image_size=cfg.image_size, action_repeat=cfg.action_repeat,
+            task,
+            image_size=cfg.image_size,
+            action_repeat=cfg.action_repeat,
             max_episode_steps=cfg.max_episode_steps,
         )
 

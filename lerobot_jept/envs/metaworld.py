@@ -89,7 +89,6 @@ def task_description(task: str) -> str:
     return _lerobot_metaworld_config()["TASK_DESCRIPTIONS"][check_task(task)]
 
 
-
 class JeptMetaworldEnv(gym.Env):
     """A Meta-World task under the JEPT protocol.
 

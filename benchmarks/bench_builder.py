@@ -1,0 +1,82 @@
+"""Builder throughput, measured against the raw simulator in the same run.
+
+Prints ``<sim>_builder_vs_raw: R`` (builder frames/s with 1 worker / raw step+render frames/s of the same env
+and settings) and ``<sim>_builder_2workers_speedup: R`` (builder frames/s with 2 workers / with 1 worker).
+"""
+
+import argparse
+import tempfile
+import time
+
+from dataset_builders.core import BuildConfig, Shard, plan_shards, rollout_expert, run_shards
+
+
+def raw_frames_per_second(sim, cfg: BuildConfig, task: str, seconds: float) -> float:
+    """Expert rollouts through the same env, with no dataset writing: step + render only."""
+    env = sim.make_env(task, cfg)
+    frames, start, seed = 0, time.perf_counter(), 0
+    while time.perf_counter() - start < seconds:
+        episode, _ = rollout_expert(env, seed, cfg.action_bins)
+        frames += len(episode)
+        seed += 1
+    elapsed = time.perf_counter() - start
+    env.close()
+    return frames / elapsed
+
+
+def builder_frames_per_second(sim, cfg: BuildConfig, shards: list[Shard]) -> float:
+    counted = {"frames": 0}
+
+    def progress(role, episodes, frames, rejected):
+        counted["frames"] += frames
+
+    start = time.perf_counter()
+    run_shards(sim, cfg, shards, progress)
+    return counted["frames"] / (time.perf_counter() - start)
+
+
+def bench(sim, config_cls, tasks: list[str], episodes: int, raw_seconds: float) -> dict[str, float]:
+    results = {}
+    with tempfile.TemporaryDirectory() as root:
+        base = dict(
+            repo_id="bench/b",
+            demo_tasks=tasks,
+            video_tasks=[],
+            unseen_tasks=[],
+            prompts_per_task=1,
+            episodes_per_task=episodes,
+            episodes_per_shard=max(1, episodes // 2),
+            root=root,
+        )
+        cfg1 = config_cls(**base, num_workers=1)
+        shards = [s for s in plan_shards(cfg1) if s.role == "demo"]
+        # Warm-up: imports, first GL context, encoder start-up are not throughput.
+        raw_frames_per_second(sim, cfg1, tasks[0], 2.0)
+        raw = raw_frames_per_second(sim, cfg1, tasks[0], raw_seconds)
+        one = builder_frames_per_second(sim, cfg1, shards)
+        cfg2 = config_cls(**{**base, "repo_id": "bench/b2"}, num_workers=2)
+        two = builder_frames_per_second(sim, cfg2, [s for s in plan_shards(cfg2) if s.role == "demo"])
+    results[f"{sim.name}_raw_frames_per_s"] = raw
+    results[f"{sim.name}_builder_frames_per_s_1worker"] = one
+    results[f"{sim.name}_builder_frames_per_s_2workers"] = two
+    results[f"{sim.name}_builder_vs_raw"] = one / raw
+    results[f"{sim.name}_builder_2workers_speedup"] = two / one
+    return results
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--episodes", type=int, default=16, help="episodes per task in each timed build")
+    parser.add_argument("--raw_seconds", type=float, default=10.0)
+    args = parser.parse_args()
+    from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator
+
+    results = bench(
+        MetaworldSimulator(), MetaworldBuildConfig, ["door-open-v3"], args.episodes, args.raw_seconds
+    )
+    for name, value in results.items():
+        print(f"{name}: {value:.3f}")
+
+
+if __name__ == "__main__":
+    main()
