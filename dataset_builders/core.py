@@ -21,7 +21,6 @@ here, once.
 """
 
 import abc
-import atexit
 import json
 import logging
 import multiprocessing as mp
@@ -376,7 +375,6 @@ def _record_in_worker(sim, cfg, shard, progress_queue) -> dict:
 def _worker_init() -> None:
     # One render/physics thread per process: the processes are the parallelism.
     os.environ.setdefault("LP_NUM_THREADS", "1")
-    atexit.register(close_envs)
     import torch
 
     torch.set_num_threads(1)
@@ -483,6 +481,28 @@ def labelled_action_stats(root: Path) -> dict:
     return get_feature_stats(labelled, axis=0, keepdims=False)
 
 
+def _nulls_to_nan(root: Path, key: str) -> None:
+    """Store missing ``key`` values as NaN floats, which LeRobot reads back as NaN tensors.
+
+    ``add_features`` goes through pandas, which turns NaN inside list cells into Arrow nulls; LeRobot's reader
+    cannot make a tensor of a null.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    for path in sorted((root / "data").glob("*/*.parquet")):
+        table = pq.read_table(path)
+        column = table[key]
+        chunks = [
+            pa.ListArray.from_arrays(chunk.offsets, pc.fill_null(chunk.values, np.float32("nan")))
+            for chunk in column.chunks
+        ]
+        fixed = pa.chunked_array(chunks, type=column.type)
+        table = table.set_column(table.schema.get_field_index(key), table.schema.field(key), fixed)
+        pq.write_table(table, path)
+
+
 def build_mix(paths: BuildPaths, action_feature: dict, has_demo: bool, has_video: bool) -> None:
     """``_mix`` = demo episodes + video episodes whose ``action`` is NaN in every dimension."""
     from lerobot.datasets.dataset_tools import add_features
@@ -507,6 +527,7 @@ def build_mix(paths: BuildPaths, action_feature: dict, has_demo: bool, has_video
         sources.append((paths.repo_id_of("video_nan"), nan_root))
     tmp = staging / "mix"
     _aggregate(sources, paths.repo_id_of("mix"), tmp)
+    _nulls_to_nan(tmp, "action")
     stats = load_stats(tmp)
     stats["action"] = labelled_action_stats(tmp)
     write_stats(stats, tmp)

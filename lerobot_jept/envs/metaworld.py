@@ -11,6 +11,7 @@ repeat of 2 and episodes truncated after 250 (policy) steps. The camera is LeRob
 builder uses and evaluation ignores.
 """
 
+import atexit
 import difflib
 import json
 from functools import cache
@@ -163,6 +164,9 @@ class JeptMetaworldEnv(gym.Env):
         policy_name = _lerobot_metaworld_config()["TASK_POLICY_MAPPING"][self.task]
         self._expert = getattr(metaworld.policies, policy_name)()
         self._env = env
+        # Free the GL context before mujoco.egl's own exit handler (registered on first use, so it runs
+        # after this one) terminates the display; freeing it later raises EGL errors at exit.
+        atexit.register(self.close)
 
     def render(self) -> np.ndarray:
         """The camera image, upright, (H, W, 3) uint8."""

@@ -1,0 +1,58 @@
+# The two commands of the README: `make demo` (the main job, end to end) and `make test`.
+# Both set everything up first: Debian's renderer/FFmpeg libraries, uv, and the locked Python 3.12 env in .venv/.
+
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+PYTHON_VERSION ?= 3.12
+UV_VERSION ?= 0.13.9
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 ffmpeg
+UV := $(shell command -v uv 2>/dev/null || echo $(HOME)/.local/bin/uv)
+VENV := .venv
+RUN := MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/python
+export UV_PYTHON_DOWNLOADS := never
+
+.PHONY: help setup system-deps demo test test-fast lint bench clean
+
+help:
+	@echo "make demo   set up, build a tiny Meta-World mixture (and, once available, train + evaluate JEPT)"
+	@echo "make test   set up, lint, run every test (slow ones included)"
+	@echo "make bench  set up, print the benchmark figures (name: value)"
+
+system-deps:
+	@missing=$$(for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+		echo "Installing Debian packages: $$missing"; \
+		SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+		$$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+$(UV):
+	python3 -m pip install --user --quiet "uv==$(UV_VERSION)"
+
+$(VENV)/.synced: pyproject.toml uv.lock | $(UV)
+	@$(UV) python find $(PYTHON_VERSION) >/dev/null 2>&1 || { \
+		echo "Python $(PYTHON_VERSION) not found: install it (e.g. 'pyenv install $(PYTHON_VERSION)') and retry."; exit 1; }
+	$(UV) sync --frozen --extra dev --python $(PYTHON_VERSION)
+	@touch $@
+
+setup: system-deps $(VENV)/.synced
+
+demo: setup
+	$(RUN) -m scripts.demo
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: lint
+	$(RUN) -m pytest tests
+
+test-fast: lint
+	$(RUN) -m pytest tests -m "not slow"
+
+bench: setup
+	@$(RUN) benchmarks/bench_builder.py
+
+clean:
+	rm -rf $(VENV) outputs

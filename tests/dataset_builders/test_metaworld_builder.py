@@ -1,0 +1,273 @@
+"""The Meta-World builder on the real simulator, at tiny sizes (64x64 images, a few episodes)."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from dataset_builders.core import BUILD_FILE, BuildError, build
+from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator, main
+from lerobot_jept.envs.metaworld import STATE_DIM, JeptMetaworldEnv, task_description
+
+SIM = MetaworldSimulator()
+TINY = dict(
+    demo_tasks=["button-press-v3", "reach-v3"],
+    video_tasks=["drawer-close-v3"],
+    unseen_tasks=["handle-press-v3"],
+    episodes_per_task=3,
+    prompts_per_task=2,
+    image_size=64,
+    episodes_per_shard=2,
+)
+
+
+def lerobot_home() -> Path:
+    return Path(os.environ["HF_LEROBOT_HOME"])
+
+
+def load(repo_id: str):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset(repo_id)  # found under $HF_LEROBOT_HOME, as lerobot-train finds it
+
+
+def actions_of(root: Path) -> np.ndarray:
+    frames = pd.concat(pd.read_parquet(p) for p in sorted((root / "data").glob("*/*.parquet")))
+    return np.stack(frames["action"].to_numpy())
+
+
+@pytest.fixture(scope="module")
+def tiny_build():
+    cfg = MetaworldBuildConfig(repo_id="test/mw_tiny", **TINY)
+    summary = build(cfg, SIM)
+    return cfg, summary
+
+
+def test_repo_schemas(tiny_build):
+    cfg, _ = tiny_build
+    expected_episodes = {"demo": 6, "video": 3, "prompts": 8, "mix": 9}
+    for role, n in expected_episodes.items():
+        ds = load(f"test/mw_tiny_{role}")
+        assert ds.meta.total_episodes == n
+        assert ds.meta.fps == 40 and ds.meta.robot_type == "sawyer"
+        assert ds.features["observation.image"]["dtype"] == "video"
+        assert tuple(ds.features["observation.image"]["shape"]) == (64, 64, 3)
+        assert tuple(ds.features["observation.state"]["shape"]) == (STATE_DIM,)
+        assert ("action" in ds.features) == (role in ("demo", "mix"))
+        item = ds[0]
+        assert item["observation.image"].shape == (3, 64, 64)
+        assert item["observation.state"].dtype.is_floating_point
+        if role in ("demo", "mix"):
+            assert tuple(ds.features["action"]["shape"]) == (4,)
+
+
+def test_executed_actions_are_bin_centres(tiny_build):
+    actions = actions_of(lerobot_home() / "test/mw_tiny_demo")
+    centres = np.linspace(-1, 1, 7)
+    assert np.abs(actions[..., None] - centres).min(-1).max() < 1e-6
+
+
+def test_mix_marks_video_frames_nan_and_stats_use_labelled_frames_only(tiny_build):
+    mix_root = lerobot_home() / "test/mw_tiny_mix"
+    frames = pd.concat(pd.read_parquet(p) for p in sorted((mix_root / "data").glob("*/*.parquet")))
+    actions = np.stack(frames["action"].to_numpy())
+    tasks = pd.read_parquet(mix_root / "meta/tasks.parquet")
+    video_task_index = tasks.loc[task_description("drawer-close-v3"), "task_index"]
+    is_video = (frames["task_index"] == video_task_index).to_numpy()
+    assert is_video.any() and (~is_video).any()
+    assert np.isnan(actions[is_video]).all()
+    mix = load("test/mw_tiny_mix")  # LeRobot reads the missing actions back as NaN tensors
+    assert mix[len(mix) - 1]["action"].isnan().all() and not mix[0]["action"].isnan().any()
+    assert np.isfinite(actions[~is_video]).all()
+
+    stats = json.loads((mix_root / "meta/stats.json").read_text())["action"]
+    labelled = actions[~is_video]
+    np.testing.assert_allclose(stats["mean"], labelled.mean(0), atol=1e-5)
+    np.testing.assert_allclose(stats["min"], labelled.min(0))
+    np.testing.assert_allclose(stats["max"], labelled.max(0))
+    assert stats["count"] == [len(labelled)]
+    # Labelled frames of the mix are exactly the demo repo's frames.
+    np.testing.assert_array_equal(labelled, actions_of(lerobot_home() / "test/mw_tiny_demo"))
+
+
+def test_task_strings_and_split_metadata(tiny_build):
+    cfg, _ = tiny_build
+    for role in ("demo", "video", "prompts", "mix"):
+        meta = json.loads((lerobot_home() / f"test/mw_tiny_{role}/meta" / BUILD_FILE).read_text())
+        assert meta["split"] == {"demo": cfg.demo_tasks, "video": cfg.video_tasks, "unseen": cfg.unseen_tasks}
+        assert meta["protocol"]["action_repeat"] == 2 and meta["protocol"]["max_episode_steps"] == 250
+    prompts = load("test/mw_tiny_prompts")
+    all_tasks = [*cfg.demo_tasks, *cfg.video_tasks, *cfg.unseen_tasks]
+    assert set(prompts.meta.tasks.index) == {task_description(t) for t in all_tasks}
+    for task in all_tasks:
+        assert JeptMetaworldEnv(task).task_description == task_description(task)
+    assert set(load("test/mw_tiny_mix").meta.tasks.index) == {
+        task_description(t) for t in [*cfg.demo_tasks, *cfg.video_tasks]
+    }
+
+
+def test_prompt_seeds_are_disjoint_from_training_seeds(tiny_build):
+    shards = lerobot_home() / "test/mw_tiny.build/shards"
+    seeds = {
+        role: {s for p in (shards / role).glob("*/*/shard.json") for s in json.loads(p.read_text())["seeds"]}
+        for role in ("demo", "video", "prompts")
+    }
+    assert seeds["prompts"].isdisjoint(seeds["demo"] | seeds["video"])
+
+
+def test_first_frame_matches_env_reset_upright_and_not_blank(tiny_build):
+    ds = load("test/mw_tiny_demo")
+    shard = json.loads(
+        (lerobot_home() / "test/mw_tiny.build/shards/demo/button-press-v3/0000/shard.json").read_text()
+    )
+    frame = (ds[0]["observation.image"].permute(1, 2, 0).numpy() * 255).astype(np.float32)
+    env = JeptMetaworldEnv("button-press-v3", image_size=64)
+    obs, _ = env.reset(seed=shard["seeds"][0])
+    env.close()
+    reference = obs["pixels"].astype(np.float32)
+    assert frame.std() > 10  # not blank
+    err = np.abs(frame - reference).mean()
+    err_flipped = np.abs(frame - np.flip(reference, (0, 1))).mean()
+    assert err < 15 and err_flipped > 3 * err  # lossy video at 64x64 vs an exact render
+    np.testing.assert_allclose(ds[0]["observation.state"].numpy(), obs["agent_pos"], rtol=1e-5)
+
+
+def test_rerun_is_a_no_op_that_keeps_everything(tiny_build):
+    cfg, _ = tiny_build
+    before = actions_of(lerobot_home() / "test/mw_tiny_mix")
+    mtime = (lerobot_home() / "test/mw_tiny_demo/meta/info.json").stat().st_mtime
+    build(cfg, SIM)
+    np.testing.assert_array_equal(actions_of(lerobot_home() / "test/mw_tiny_mix"), before)
+    assert (lerobot_home() / "test/mw_tiny_demo/meta/info.json").stat().st_mtime == mtime
+
+
+def test_same_flags_give_same_episodes_with_any_worker_count(tmp_path):
+    flags = dict(
+        demo_tasks=["reach-v3"],
+        video_tasks=[],
+        unseen_tasks=[],
+        episodes_per_task=3,
+        prompts_per_task=1,
+        image_size=48,
+        episodes_per_shard=1,
+        seed=7,
+    )
+    build(MetaworldBuildConfig(repo_id="test/rep", root=str(tmp_path / "a"), num_workers=1, **flags), SIM)
+    build(MetaworldBuildConfig(repo_id="test/rep", root=str(tmp_path / "b"), num_workers=2, **flags), SIM)
+    for role in ("demo", "mix"):
+        a, b = actions_of(tmp_path / f"a/test/rep_{role}"), actions_of(tmp_path / f"b/test/rep_{role}")
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        ({"demo_tasks": ["button-pres-v3"]}, "Did you mean button-press-v3"),
+        ({"demo_tasks": ["reach-v3"], "video_tasks": ["reach-v3"]}, "in both demo_tasks and video_tasks"),
+        ({"episodes_per_task": 0}, "--episodes_per_task must be at least 1"),
+        ({"demo_tasks": [], "video_tasks": []}, "Nothing to train on"),
+        ({"repo_id": "no_org"}, "ORG/NAME"),
+    ],
+)
+def test_bad_flags_get_one_line_errors(tmp_path, flags, message):
+    cfg = MetaworldBuildConfig(**{"repo_id": "test/bad", "root": str(tmp_path), **TINY, **flags})
+    with pytest.raises(BuildError, match=message) as err:
+        build(cfg, SIM)
+    assert "\n" not in str(err.value)
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_existing_repo_with_different_flags_is_refused(tiny_build, capsys):
+    cfg, _ = tiny_build
+    with pytest.raises(SystemExit, match="built with different flags: --episodes_per_task=3 \\(now 4\\)"):
+        main(
+            [
+                "--repo_id=test/mw_tiny",
+                "--episodes_per_task=4",
+                "--image_size=64",
+                "--prompts_per_task=2",
+                "--episodes_per_shard=2",
+                "--demo_tasks=[button-press-v3, reach-v3]",
+                "--video_tasks=[drawer-close-v3]",
+                "--unseen_tasks=[handle-press-v3]",
+            ]
+        )
+
+
+def test_foreign_repo_is_not_overwritten(tmp_path):
+    (tmp_path / "test/foreign_demo").mkdir(parents=True)
+    cfg = MetaworldBuildConfig(repo_id="test/foreign", root=str(tmp_path), **TINY)
+    with pytest.raises(BuildError, match="were not built by this builder"):
+        build(cfg, SIM)
+
+
+def test_missing_renderer_names_the_fix(tmp_path, monkeypatch):
+    import ctypes.util
+
+    from lerobot_jept.envs.rendering import RendererUnavailableError, setup_offscreen_gl
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)
+    with pytest.raises(RendererUnavailableError, match="apt-get install libegl1 .*MUJOCO_GL=osmesa"):
+        setup_offscreen_gl()
+    monkeypatch.setenv("MUJOCO_GL", "opengl-please")
+    with pytest.raises(RendererUnavailableError, match="set MUJOCO_GL to one of"):
+        setup_offscreen_gl()
+
+
+@pytest.mark.slow
+def test_killed_build_resumes_without_loss_or_duplicates(tmp_path):
+    """Kill the CLI mid-build (SIGKILL), check the repos, re-run, check the result equals a clean build."""
+    flags = [
+        "--repo_id=test/kill",
+        "--demo_tasks=[button-press-v3, reach-v3]",
+        "--video_tasks=[drawer-close-v3]",
+        "--unseen_tasks=[]",
+        "--episodes_per_task=4",
+        "--prompts_per_task=1",
+        "--image_size=48",
+        "--episodes_per_shard=1",
+    ]
+
+    def args_for(root):
+        return [f"--root={root}", *flags]
+
+    cmd = [
+        sys.executable,
+        "-c",
+        "from dataset_builders.metaworld import main; main()",
+        *args_for(tmp_path / "killed"),
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    shards = tmp_path / "killed/test/kill.build/shards/demo"
+    deadline = time.time() + 300
+    while time.time() < deadline and len(list(shards.glob("*/*/shard.json"))) < 3:
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done_before = len(list(shards.glob("*/*/shard.json")))
+    assert 3 <= done_before < 8, "the kill must land mid-build"
+
+    main(args_for(tmp_path / "killed"))  # resume
+    main(args_for(tmp_path / "clean"))  # reference: one uninterrupted build
+    for role in ("demo", "mix"):
+        resumed = actions_of(tmp_path / f"killed/test/kill_{role}")
+        clean = actions_of(tmp_path / f"clean/test/kill_{role}")
+        np.testing.assert_array_equal(resumed, clean)
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    for role, n in {"demo": 8, "video": 4, "prompts": 3, "mix": 12}.items():
+        ds = LeRobotDataset(f"test/kill_{role}", root=tmp_path / f"killed/test/kill_{role}")
+        assert ds.meta.total_episodes == n
+        episode_index = ds.hf_dataset["episode_index"]
+        assert sorted(set(int(e) for e in episode_index)) == list(range(n))
+    assert not list((tmp_path / "killed").rglob("*.tmp"))
+    shutil.rmtree(tmp_path)
