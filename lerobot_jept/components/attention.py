@@ -1,0 +1,58 @@
+"""Transformer building blocks shared by the Perceivers, the temporal encoder and the causal predictor."""
+
+import torch
+from torch import Tensor, nn
+
+
+class FeedForward(nn.Sequential):
+    def __init__(self, dim: int, hidden_dim: int, dropout: float = 0.0):
+        super().__init__(
+            nn.Linear(dim, hidden_dim), nn.GELU(), nn.Dropout(dropout), nn.Linear(hidden_dim, dim)
+        )
+
+
+class CrossAttentionBlock(nn.Module):
+    """Pre-norm cross-attention of ``queries`` (B, Nq, D) on ``context`` (B, Nc, Dc), then a feed-forward."""
+
+    def __init__(
+        self, dim: int, heads: int, ff_dim: int, dropout: float = 0.0, context_dim: int | None = None
+    ):
+        super().__init__()
+        context_dim = context_dim or dim
+        self.norm_q = nn.LayerNorm(dim)
+        self.norm_c = nn.LayerNorm(context_dim)
+        self.attn = nn.MultiheadAttention(
+            dim, heads, dropout=dropout, kdim=context_dim, vdim=context_dim, batch_first=True
+        )
+        self.norm_ff = nn.LayerNorm(dim)
+        self.ff = FeedForward(dim, ff_dim, dropout)
+
+    def forward(self, queries: Tensor, context: Tensor) -> Tensor:
+        c = self.norm_c(context)
+        queries = queries + self.attn(self.norm_q(queries), c, c, need_weights=False)[0]
+        return queries + self.ff(self.norm_ff(queries))
+
+
+class SelfAttentionStack(nn.Module):
+    """``layers`` pre-norm Transformer encoder layers over (B, N, D); ``mask`` (N, N) bool, True = blocked."""
+
+    def __init__(self, dim: int, heads: int, ff_dim: int, layers: int, dropout: float = 0.0):
+        super().__init__()
+        layer = nn.TransformerEncoderLayer(
+            dim, heads, ff_dim, dropout, activation="gelu", batch_first=True, norm_first=True
+        )
+        self.layers = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        return self.norm(self.layers(x, mask=mask))
+
+
+def sinusoidal_positions(length: int, dim: int) -> Tensor:
+    """(length, dim) fixed sinusoidal position table."""
+    position = torch.arange(length, dtype=torch.float32)[:, None]
+    freq = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-torch.log(torch.tensor(10000.0)) / dim))
+    table = torch.zeros(length, dim)
+    table[:, 0::2] = torch.sin(position * freq)
+    table[:, 1::2] = torch.cos(position * freq[: dim // 2])
+    return table

@@ -1,0 +1,84 @@
+"""Visual encoders (paper, Section 3.2.1 and Appendix A.2).
+
+- :class:`ObservationTokenizer`: the single-timestep encoder, shared by the joint embedding encoder and the
+  causal predictor's observation tokens: backbone tokens -> Perceiver-IO (N_q queries) plus the self-state
+  through an MLP as one more token -> (B, N_obs = N_q + 1, D).
+- :class:`JointEmbeddingEncoder` (Psi_obs): observation tokens of k frames -> bi-directional temporal
+  Transformer -> joint embeddings h (B, k, N_obs, joint_dim).
+- :class:`PromptVideoEncoder` (Psi_prt): prompt frames -> backbone -> per-frame Perceiver -> a second Perceiver
+  over the flattened frame tokens -> E_prt (B, N_prt, D).
+"""
+
+import torch
+from einops import rearrange
+from torch import Tensor, nn
+
+from lerobot_jept.components.attention import SelfAttentionStack, sinusoidal_positions
+from lerobot_jept.components.perceiver import PerceiverIO
+
+
+class ObservationTokenizer(nn.Module):
+    """(B, 3, H, W) backbone tokens (B, N, C) + state (B, S) -> (B, N_q + 1, D)."""
+
+    def __init__(self, backbone_dim: int, state_dim: int, perceiver: dict, dim: int):
+        super().__init__()
+        self.perceiver = PerceiverIO(backbone_dim, dim=dim, **perceiver)
+        self.state_mlp = nn.Sequential(nn.Linear(state_dim, dim), nn.GELU(), nn.Linear(dim, dim))
+
+    def forward(self, backbone_tokens: Tensor, state: Tensor) -> Tensor:
+        visual = self.perceiver(backbone_tokens)
+        return torch.cat([visual, self.state_mlp(state)[:, None]], dim=1)
+
+
+class JointEmbeddingEncoder(nn.Module):
+    """Observation tokens (B, T, N_obs, D) -> joint embeddings h (B, T, N_obs, joint_dim), bi-directional."""
+
+    def __init__(
+        self,
+        dim: int,
+        joint_dim: int,
+        heads: int,
+        ff_dim: int,
+        layers: int,
+        dropout: float,
+        max_steps: int,
+        tokens_per_step: int,
+    ):
+        super().__init__()
+        self.time_pos = nn.Parameter(sinusoidal_positions(max_steps, dim)[:, None], requires_grad=False)
+        self.token_pos = nn.Parameter(torch.randn(tokens_per_step, dim) * 0.02)
+        self.temporal = SelfAttentionStack(dim, heads, ff_dim, layers, dropout)
+        self.out = nn.Linear(dim, joint_dim)
+
+    def forward(self, obs_tokens: Tensor) -> Tensor:
+        b, t, n, _ = obs_tokens.shape
+        x = obs_tokens + self.time_pos[:t] + self.token_pos
+        x = self.temporal(rearrange(x, "b t n d -> b (t n) d"))
+        return rearrange(self.out(x), "b (t n) d -> b t n d", t=t, n=n)
+
+
+class PromptVideoEncoder(nn.Module):
+    """Backbone tokens of N prompt frames (B, N, P, C) -> E_prt (B, N_prt, D)."""
+
+    def __init__(
+        self, backbone_dim: int, frame_perceiver: dict, video_perceiver: dict, dim: int, max_frames: int
+    ):
+        super().__init__()
+        self.frame_perceiver = PerceiverIO(backbone_dim, dim=dim, **frame_perceiver)
+        self.frame_pos = nn.Parameter(sinusoidal_positions(max_frames, dim)[:, None], requires_grad=False)
+        self.video_perceiver = PerceiverIO(dim, dim=dim, **video_perceiver)
+
+    def encode_frames(self, frame_tokens: Tensor) -> Tensor:
+        """(B, N, P, C) -> per-frame tokens (B, N, Q, D)."""
+        b = frame_tokens.shape[0]
+        per_frame = self.frame_perceiver(rearrange(frame_tokens, "b n p c -> (b n) p c"))
+        return rearrange(per_frame, "(b n) q d -> b n q d", b=b)
+
+    def forward(self, frame_tokens: Tensor, frame_mask: Tensor | None = None) -> Tensor:
+        """``frame_mask`` (B, N) True for real frames; padded frames are zeroed out of the video tokens."""
+        per_frame = self.encode_frames(frame_tokens)
+        n = per_frame.shape[1]
+        per_frame = per_frame + self.frame_pos[:n]
+        if frame_mask is not None:
+            per_frame = per_frame * frame_mask[:, :, None, None]
+        return self.video_perceiver(rearrange(per_frame, "b n q d -> b (n q) d"))

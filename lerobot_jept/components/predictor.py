@@ -1,0 +1,103 @@
+"""The video-conditioned causal predictor Psi_pred and its heads Gamma_obs, Gamma_act (Section 3.2.2)."""
+
+import torch
+from einops import rearrange, repeat
+from torch import Tensor, nn
+
+from lerobot_jept.components.attention import CrossAttentionBlock, SelfAttentionStack, sinusoidal_positions
+from lerobot_jept.components.token_groups import attention_mask, group_slices, jept_groups
+
+
+class CausalPredictor(nn.Module):
+    """``Z = Psi_pred(E_prt, o_1, h_2, ..., o_k, h_{k+1})`` with the block-causal mask of the paper.
+
+    Inputs: prompt (B, N_prt, D_in) or None (warm-up), obs tokens (B, k, N_obs, D_in), joint embeddings
+    (B, k, N_obs, joint_dim) for h_2..h_{k+1}. Returns the hidden states of the obs and emb tokens,
+    each (B, k, N_obs, width).
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        joint_dim: int,
+        width: int,
+        heads: int,
+        ff_dim: int,
+        layers: int,
+        dropout: float,
+        max_steps: int,
+        tokens_per_step: int,
+    ):
+        super().__init__()
+        self.prompt_in = nn.Linear(obs_dim, width)
+        self.obs_in = nn.Linear(obs_dim, width)
+        self.emb_in = nn.Linear(joint_dim, width)
+        self.type_embed = nn.Parameter(torch.randn(3, width) * 0.02)  # prompt, obs, emb
+        self.token_pos = nn.Parameter(torch.randn(tokens_per_step, width) * 0.02)
+        self.time_pos = nn.Parameter(sinusoidal_positions(max_steps, width)[:, None], requires_grad=False)
+        self.transformer = SelfAttentionStack(width, heads, ff_dim, layers, dropout)
+        self.tokens_per_step = tokens_per_step
+
+    def forward(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
+        b, k, n, _ = obs.shape
+        step = self.time_pos[:k] + self.token_pos
+        o = self.obs_in(obs) + step + self.type_embed[1]
+        h = self.emb_in(emb) + step + self.type_embed[2]
+        seq = rearrange(torch.stack([o, h], dim=2), "b k g n d -> b (k g n) d")
+        num_prompt = 0
+        if prompt is not None:
+            num_prompt = prompt.shape[1]
+            seq = torch.cat([self.prompt_in(prompt) + self.type_embed[0], seq], dim=1)
+        groups = jept_groups(num_prompt, k, n)
+        z = self.transformer(seq, mask=attention_mask(groups).to(seq.device))
+        z_obs = torch.stack([z[:, s] for s in group_slices(groups, "obs")], dim=1)
+        z_emb = torch.stack([z[:, s] for s in group_slices(groups, "emb")], dim=1)
+        return z_obs, z_emb
+
+
+class ObservationHead(nn.Module):
+    """Gamma_obs: MLP (LeakyReLU) from obs-token hidden states (..., width) to h_{t+1} tokens (..., joint_dim)."""
+
+    def __init__(self, width: int, joint_dim: int, hidden_dim: int = 256, layers: int = 3):
+        super().__init__()
+        dims = [width] + [hidden_dim] * (layers - 1)
+        blocks = []
+        for d_in, d_out in zip(dims[:-1], dims[1:], strict=True):
+            blocks += [nn.Linear(d_in, d_out), nn.LeakyReLU()]
+        self.mlp = nn.Sequential(*blocks, nn.Linear(dims[-1], joint_dim))
+
+    def forward(self, z_obs: Tensor) -> Tensor:
+        return self.mlp(z_obs)
+
+
+class ActionHead(nn.Module):
+    """Gamma_act: one learnable query per action dimension cross-attends to the h_{t+1} hidden states.
+
+    (B, k, N_obs, width) -> logits (B, k, action_dim, num_bins).
+    """
+
+    def __init__(
+        self,
+        width: int,
+        action_dim: int,
+        num_bins: int,
+        dim: int = 256,
+        heads: int = 4,
+        layers: int = 2,
+        ff_dim: int = 512,
+        dropout: float = 0.0,
+    ):
+        super().__init__()
+        self.queries = nn.Parameter(torch.randn(action_dim, dim) * 0.02)
+        self.blocks = nn.ModuleList(
+            CrossAttentionBlock(dim, heads, ff_dim, dropout, context_dim=width) for _ in range(layers)
+        )
+        self.out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, num_bins))
+
+    def forward(self, z_emb: Tensor) -> Tensor:
+        b, k = z_emb.shape[:2]
+        context = rearrange(z_emb, "b k n d -> (b k) n d")
+        q = repeat(self.queries, "a d -> bk a d", bk=b * k)
+        for block in self.blocks:
+            q = block(q, context)
+        return rearrange(self.out(q), "(b k) a c -> b k a c", b=b)
