@@ -56,3 +56,18 @@ def sinusoidal_positions(length: int, dim: int) -> Tensor:
     table[:, 0::2] = torch.sin(position * freq)
     table[:, 1::2] = torch.cos(position * freq[: dim // 2])
     return table
+
+
+class StepPositions(nn.Module):
+    """Position of a token in a (time step, token within the step) grid: (T, N, D), T <= max_steps.
+
+    Fixed sinusoids over time steps plus a learned embedding per token slot of a step.
+    """
+
+    def __init__(self, max_steps: int, tokens_per_step: int, dim: int):
+        super().__init__()
+        self.register_buffer("time", sinusoidal_positions(max_steps, dim)[:, None], persistent=False)
+        self.token = nn.Parameter(torch.randn(tokens_per_step, dim) * 0.02)
+
+    def forward(self, num_steps: int) -> Tensor:
+        return self.time[:num_steps] + self.token

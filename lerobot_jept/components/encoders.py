@@ -13,7 +13,7 @@ import torch
 from einops import rearrange
 from torch import Tensor, nn
 
-from lerobot_jept.components.attention import SelfAttentionStack, sinusoidal_positions
+from lerobot_jept.components.attention import SelfAttentionStack, StepPositions, sinusoidal_positions
 from lerobot_jept.components.perceiver import PerceiverIO
 
 
@@ -45,14 +45,13 @@ class JointEmbeddingEncoder(nn.Module):
         tokens_per_step: int,
     ):
         super().__init__()
-        self.time_pos = nn.Parameter(sinusoidal_positions(max_steps, dim)[:, None], requires_grad=False)
-        self.token_pos = nn.Parameter(torch.randn(tokens_per_step, dim) * 0.02)
+        self.positions = StepPositions(max_steps, tokens_per_step, dim)
         self.temporal = SelfAttentionStack(dim, heads, ff_dim, layers, dropout)
         self.out = nn.Linear(dim, joint_dim)
 
     def forward(self, obs_tokens: Tensor) -> Tensor:
         b, t, n, _ = obs_tokens.shape
-        x = obs_tokens + self.time_pos[:t] + self.token_pos
+        x = obs_tokens + self.positions(t)
         x = self.temporal(rearrange(x, "b t n d -> b (t n) d"))
         return rearrange(self.out(x), "b (t n) d -> b t n d", t=t, n=n)
 
@@ -65,7 +64,7 @@ class PromptVideoEncoder(nn.Module):
     ):
         super().__init__()
         self.frame_perceiver = PerceiverIO(backbone_dim, dim=dim, **frame_perceiver)
-        self.frame_pos = nn.Parameter(sinusoidal_positions(max_frames, dim)[:, None], requires_grad=False)
+        self.register_buffer("frame_pos", sinusoidal_positions(max_frames, dim)[:, None], persistent=False)
         self.video_perceiver = PerceiverIO(dim, dim=dim, **video_perceiver)
 
     def encode_frames(self, frame_tokens: Tensor) -> Tensor:

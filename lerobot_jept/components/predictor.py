@@ -4,7 +4,7 @@ import torch
 from einops import rearrange, repeat
 from torch import Tensor, nn
 
-from lerobot_jept.components.attention import CrossAttentionBlock, SelfAttentionStack, sinusoidal_positions
+from lerobot_jept.components.attention import CrossAttentionBlock, SelfAttentionStack, StepPositions
 from lerobot_jept.components.token_groups import attention_mask, group_slices, jept_groups
 
 
@@ -33,14 +33,12 @@ class CausalPredictor(nn.Module):
         self.obs_in = nn.Linear(obs_dim, width)
         self.emb_in = nn.Linear(joint_dim, width)
         self.type_embed = nn.Parameter(torch.randn(3, width) * 0.02)  # prompt, obs, emb
-        self.token_pos = nn.Parameter(torch.randn(tokens_per_step, width) * 0.02)
-        self.time_pos = nn.Parameter(sinusoidal_positions(max_steps, width)[:, None], requires_grad=False)
+        self.positions = StepPositions(max_steps, tokens_per_step, width)
         self.transformer = SelfAttentionStack(width, heads, ff_dim, layers, dropout)
-        self.tokens_per_step = tokens_per_step
 
     def forward(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
         b, k, n, _ = obs.shape
-        step = self.time_pos[:k] + self.token_pos
+        step = self.positions(k)
         o = self.obs_in(obs) + step + self.type_embed[1]
         h = self.emb_in(emb) + step + self.type_embed[2]
         seq = rearrange(torch.stack([o, h], dim=2), "b k g n d -> b (k g n) d")
