@@ -627,6 +627,10 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
     record["metadata"] = metadata
     (paths.work / BUILD_FILE).write_text(json.dumps(record, indent=2))
 
+    per_role = stats["per_role"]
+    per_role["mix"] = {
+        key: per_role["demo"][key] + per_role["video"][key] for key in ("episodes", "frames", "attempts")
+    }
     summary = {
         "record_seconds": record_seconds,
         "total_seconds": time.perf_counter() - start,
@@ -634,11 +638,9 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
             role: {
                 "repo_id": paths.repo_id_of(role),
                 "path": str(paths.repo(role)),
-                "episodes": stats["per_role"][role]["episodes"] if role != "mix" else None,
-                "frames": stats["per_role"][role]["frames"] if role != "mix" else None,
-                "rejected": stats["per_role"][role]["attempts"] - stats["per_role"][role]["episodes"]
-                if role != "mix"
-                else None,
+                "episodes": per_role[role]["episodes"],
+                "frames": per_role[role]["frames"],
+                "rejected": per_role[role]["attempts"] - per_role[role]["episodes"],
                 "bytes": dir_size(paths.repo(role)),
             }
             for role in metadata["repos"]
@@ -665,9 +667,9 @@ def _episode_stats(summaries: list[dict]) -> dict:
 def format_summary(summary: dict) -> str:
     lines = [f"{'repo':<40} {'episodes':>9} {'frames':>9} {'rejected':>9} {'size MB':>9}"]
     for info in summary["repos"].values():
-        cells = [info[k] if info[k] is not None else "-" for k in ("episodes", "frames", "rejected")]
         lines.append(
-            f"{info['repo_id']:<40} {cells[0]:>9} {cells[1]:>9} {cells[2]:>9} {info['bytes'] / 1e6:>9.1f}"
+            f"{info['repo_id']:<40} {info['episodes']:>9} {info['frames']:>9} {info['rejected']:>9} "
+            f"{info['bytes'] / 1e6:>9.1f}"
         )
     rates = ", ".join(f"{t} {r:.0%}" for t, r in summary["expert_success_rate"].items())
     lines.append(f"expert success (kept / attempted): {rates}")
