@@ -191,9 +191,8 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
     for name in ("episodes_per_task", "prompts_per_task", "image_size", "num_workers", "episodes_per_shard"):
         if getattr(cfg, name) < 1:
             raise BuildError(f"--{name} must be at least 1, got {getattr(cfg, name)}.")
-    for name in ("action_bins",):
-        if getattr(cfg, name) < 2:
-            raise BuildError(f"--{name} must be at least 2, got {getattr(cfg, name)}.")
+    if cfg.action_bins < 2:
+        raise BuildError(f"--action_bins must be at least 2, got {cfg.action_bins}.")
     if cfg.action_repeat < 1 or cfg.max_episode_steps < 1:
         raise BuildError("--action_repeat and --max_episode_steps must be at least 1.")
     if not cfg.demo_tasks and not cfg.video_tasks:
