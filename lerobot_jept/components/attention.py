@@ -34,7 +34,10 @@ class CrossAttentionBlock(nn.Module):
 
 
 class SelfAttentionStack(nn.Module):
-    """``layers`` pre-norm Transformer encoder layers over (B, N, D); ``mask`` (N, N) bool, True = blocked."""
+    """``layers`` pre-norm Transformer encoder layers over (B, N, D).
+
+    ``mask`` (N, N) and ``key_padding_mask`` (B, N) are bool, True = blocked.
+    """
 
     def __init__(self, dim: int, heads: int, ff_dim: int, layers: int, dropout: float = 0.0):
         super().__init__()
@@ -44,8 +47,10 @@ class SelfAttentionStack(nn.Module):
         self.layers = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(dim)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
-        return self.norm(self.layers(x, mask=mask))
+    def forward(
+        self, x: Tensor, mask: Tensor | None = None, key_padding_mask: Tensor | None = None
+    ) -> Tensor:
+        return self.norm(self.layers(x, mask=mask, src_key_padding_mask=key_padding_mask))
 
 
 def sinusoidal_positions(length: int, dim: int) -> Tensor:

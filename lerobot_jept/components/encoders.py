@@ -31,10 +31,16 @@ class ObservationTokenizer(nn.Module):
 
 
 class JointEmbeddingEncoder(nn.Module):
-    """Observation tokens (B, T, N_obs, D) -> joint embeddings h (B, T, N_obs, joint_dim), bi-directional."""
+    """Observation tokens (B, T, N_obs, D_in) -> joint embeddings h (B, T, N_obs, joint_dim), bi-directional.
+
+    :meth:`context_embeddings` gives each frame the embedding computed from the frames up to it only: the
+    predictor's input h_j must not carry information about o_{j+1}, its own L_obs target (see README,
+    "Design notes").
+    """
 
     def __init__(
         self,
+        input_dim: int,
         dim: int,
         joint_dim: int,
         heads: int,
@@ -45,15 +51,29 @@ class JointEmbeddingEncoder(nn.Module):
         tokens_per_step: int,
     ):
         super().__init__()
+        self.inp = nn.Linear(input_dim, dim) if input_dim != dim else nn.Identity()
         self.positions = StepPositions(max_steps, tokens_per_step, dim)
         self.temporal = SelfAttentionStack(dim, heads, ff_dim, layers, dropout)
         self.out = nn.Linear(dim, joint_dim)
 
-    def forward(self, obs_tokens: Tensor) -> Tensor:
+    def forward(self, obs_tokens: Tensor, frame_padding: Tensor | None = None) -> Tensor:
+        """``frame_padding`` (B, T) bool, True for frames the others must not attend to."""
         b, t, n, _ = obs_tokens.shape
-        x = obs_tokens + self.positions(t)
-        x = self.temporal(rearrange(x, "b t n d -> b (t n) d"))
+        x = self.inp(obs_tokens) + self.positions(t)
+        key_padding = None if frame_padding is None else frame_padding.repeat_interleave(n, dim=1)
+        x = self.temporal(rearrange(x, "b t n d -> b (t n) d"), key_padding_mask=key_padding)
         return rearrange(self.out(x), "b (t n) d -> b t n d", t=t, n=n)
+
+    def context_embeddings(self, obs_tokens: Tensor) -> Tensor:
+        """(B, T, N, D_in) -> (B, T, N, joint_dim): frame j encoded bi-directionally over frames 0..j only.
+
+        One batched pass over T copies of the window, copy j padding out the frames after j.
+        """
+        b, t = obs_tokens.shape[:2]
+        steps = torch.arange(t, device=obs_tokens.device)
+        padding = (steps[None, :] > steps[:, None]).repeat(b, 1)  # (B*T, T): copy j hides frames > j
+        h = self.forward(obs_tokens.repeat_interleave(t, dim=0), padding)  # (B*T, T, N, J)
+        return rearrange(h, "(b j) t n d -> b j t n d", b=b)[:, steps, steps]
 
 
 class PromptVideoEncoder(nn.Module):

@@ -24,9 +24,10 @@ def test_encoders_shapes():
     obs = tok(torch.randn(6, 17, 24), torch.randn(6, 18))
     assert obs.shape == (6, 5, D)  # N_obs = 4 queries + 1 state token
     enc = JointEmbeddingEncoder(
-        D, J, heads=2, ff_dim=64, layers=1, dropout=0.0, max_steps=8, tokens_per_step=5
+        D, D, J, heads=2, ff_dim=64, layers=1, dropout=0.0, max_steps=8, tokens_per_step=5
     )
     assert enc(obs.view(2, 3, 5, D)).shape == (2, 3, 5, J)
+    assert enc.context_embeddings(obs.view(2, 3, 5, D)).shape == (2, 3, 5, J)
     prompt = PromptVideoEncoder(24, SMALL_PERCEIVER, {**SMALL_PERCEIVER, "num_queries": 6}, D, max_frames=10)
     mask = torch.tensor([[True] * 10, [True] * 4 + [False] * 6])
     assert prompt(torch.randn(2, 10, 17, 24), mask).shape == (2, 6, D)
@@ -98,3 +99,17 @@ def test_pretrained_weights_without_network_say_how_to_proceed(monkeypatch):
         BackboneWeightsUnavailableError, match="backbone_weights_path=PATH.*pretrained_backbone=false"
     ):
         SpatialBackbone("vit_tiny_patch16_224", pretrained=True, freeze=True, image_size=32)
+
+
+def test_context_embeddings_see_only_frames_up_to_their_own():
+    torch.manual_seed(0)
+    enc = JointEmbeddingEncoder(D, 48, J, heads=2, ff_dim=64, layers=2, dropout=0.0, max_steps=8, tokens_per_step=5)
+    obs = torch.randn(2, 4, 5, D)
+    h = enc.context_embeddings(obs)
+    obs2 = obs.clone()
+    obs2[:, 2:] += 5.0
+    h2 = enc.context_embeddings(obs2)
+    torch.testing.assert_close(h2[:, :2], h[:, :2])  # frames 0, 1 do not see frames 2, 3
+    assert not torch.allclose(h2[:, 2], h[:, 2])
+    # frame j's embedding is the bi-directional encoding of the window 0..j
+    torch.testing.assert_close(h[:, 2], enc(obs[:, :3])[:, 2], atol=1e-5, rtol=1e-5)

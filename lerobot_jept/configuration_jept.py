@@ -1,0 +1,278 @@
+"""``JEPTConfig``: every hyperparameter of the paper's Tables 5-6, with the paper's values as defaults.
+
+Reading of Table 6 (its row labels are lost in the text we have): 90 epochs (``--steps`` in LeRobot), AdamW,
+learning rates 3e-5 for the joint embedding encoder and 7e-5 for the prompt video encoder and for the causal
+predictor with its heads, weight decay 1e-4, gradient clipping 1.0, 200 linear warm-up steps and c = 8 (c = 8 is
+confirmed by Appendix C.2).
+
+A small configuration that trains on a 2-core CPU is :meth:`JEPTConfig.small`, also shipped as the
+lerobot-train config file ``examples/configs/train_jept_small_cpu.json``.
+"""
+
+from dataclasses import dataclass, field
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType, NormalizationMode
+from lerobot.optim.optimizers import AdamWConfig
+from lerobot.optim.schedulers import ConstantWithWarmupSchedulerConfig
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+PHASE_SCHEDULES = ("alternate", "joint")
+
+
+@PreTrainedConfig.register_subclass("jept")
+@dataclass
+class JEPTConfig(PreTrainedConfig):
+    """Joint Embedding Predictive Transformer (paper Section 3, Appendix A).
+
+    Inputs: one camera ``observation.image*`` (C, H, W) and the self-state ``observation.state``; output: a
+    1-D ``action`` whose every dimension is classified into ``num_action_bins`` bins over
+    [``action_low``, ``action_high``]. The prompt video comes from the caller as ``observation.prompt_video``
+    or from the prompt bank ``prompt_repo_id`` by the sample's task string (see ``processor_jept``).
+
+    Args:
+        n_obs_steps: context length k (Table 5: 8). Training samples hold k + 1 frames: the k context frames
+            and the next one, whose joint embedding is the last target.
+        image_size: the model's input resolution (Table 5 backbone: 224). Frames of another size are resized.
+        vision_backbone: timm model name of the spatial encoder (paper: ``vit_base_patch16_224``). Visual prior
+            injection (Section 4.4) is a change of this name.
+        pretrained_backbone: load the backbone's pretrained weights through timm (needs the Hub, or
+            ``backbone_weights_path``).
+        backbone_weights_path: local weights file (timm checkpoint, .safetensors or .pth) for the backbone.
+        freeze_backbone: keep the backbone fixed (paper: frozen), so the Perceivers act as adaptors.
+        perceiver_dim, perceiver_heads, perceiver_encoder_cross_layers, perceiver_encoder_self_layers,
+            perceiver_decoder_cross_layers: the Perceiver-IO structure shared by the single-frame and the
+            temporal (prompt) Perceivers (Table 5: 512, 8, 1, 2, 1).
+        frame_perceiver_latents, frame_perceiver_queries, frame_perceiver_ff_dim, frame_perceiver_dropout:
+            single-frame Perceiver-IO (64, 8, 1024, 0.1). N_obs = queries + 1 self-state token = 9.
+        prompt_perceiver_latents, prompt_perceiver_queries, prompt_perceiver_ff_dim, prompt_perceiver_dropout:
+            the temporal Perceiver-IO of the prompt encoder (128, N_prt = 32, 892, 0.08).
+        max_prompt_length: prompt frames at most (250); longer prompts are uniformly subsampled.
+        joint_embedding_dim, temporal_dim, temporal_heads, temporal_layers, temporal_ff_dim, temporal_dropout:
+            the bi-directional temporal encoder (256, 512, 8, 2, 1024, 0.1).
+        predictor_dim, predictor_heads, predictor_layers, predictor_ff_dim, predictor_dropout: the causal
+            Transformer (584, 8, 4, 1168, 0.05).
+        action_head_dim, action_head_heads, action_head_layers, action_head_ff_dim: Gamma_act (256, 4, 2, 512).
+        obs_head_hidden_dim, obs_head_layers: Gamma_obs, an MLP with LeakyReLU (256, 3).
+        num_action_bins, action_low, action_high: the action discretisation (7 bins over the env's [-1, 1]).
+        action_dim: action size; taken from the dataset's ``action`` feature, needed only for datasets without
+            one (expert videos alone).
+        action_loss_weight: c in eq. 9 (8).
+        ema_decay: decay of the EMA target encoder (the paper does not give it; I-JEPA's 0.996).
+        phase_schedule: "alternate" (Algorithm 1: encoder-only phases and other-components phases) or "joint".
+        phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch: set frames / batch size).
+        prompt_warmup_steps: steps at the start during which E_prt is excluded from the predictor (A.4; the
+            paper gives no number).
+        optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
+            optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
+        prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
+            ``ORG/NAME_prompts``) and an optional local root for it.
+        cache_frame_tokens: ``select_action`` reuses per-frame tokens of the previous k - 1 frames (off only
+            to check the cache against full recomputation).
+    """
+
+    n_obs_steps: int = 8
+    image_size: int = 224
+
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,  # the backbone applies its own (timm) normalisation
+            "STATE": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.IDENTITY,  # discretised over the env's action range instead
+        }
+    )
+
+    vision_backbone: str = "vit_base_patch16_224"
+    pretrained_backbone: bool = True
+    backbone_weights_path: str | None = None
+    freeze_backbone: bool = True
+
+    perceiver_dim: int = 512
+    perceiver_heads: int = 8
+    perceiver_encoder_cross_layers: int = 1
+    perceiver_encoder_self_layers: int = 2
+    perceiver_decoder_cross_layers: int = 1
+    frame_perceiver_latents: int = 64
+    frame_perceiver_queries: int = 8
+    frame_perceiver_ff_dim: int = 1024
+    frame_perceiver_dropout: float = 0.1
+    prompt_perceiver_latents: int = 128
+    prompt_perceiver_queries: int = 32
+    prompt_perceiver_ff_dim: int = 892
+    prompt_perceiver_dropout: float = 0.08
+    max_prompt_length: int = 250
+
+    joint_embedding_dim: int = 256
+    temporal_dim: int = 512
+    temporal_heads: int = 8
+    temporal_layers: int = 2
+    temporal_ff_dim: int = 1024
+    temporal_dropout: float = 0.1
+
+    predictor_dim: int = 584
+    predictor_heads: int = 8
+    predictor_layers: int = 4
+    predictor_ff_dim: int = 1168
+    predictor_dropout: float = 0.05
+
+    action_head_dim: int = 256
+    action_head_heads: int = 4
+    action_head_layers: int = 2
+    action_head_ff_dim: int = 512
+    obs_head_hidden_dim: int = 256
+    obs_head_layers: int = 3
+
+    num_action_bins: int = 7
+    action_low: float = -1.0
+    action_high: float = 1.0
+    action_dim: int | None = None
+
+    action_loss_weight: float = 8.0
+    ema_decay: float = 0.996
+    phase_schedule: str = "alternate"
+    phase_steps: int = 1000
+    prompt_warmup_steps: int = 1000
+
+    optimizer_lr_encoder: float = 3e-5
+    optimizer_lr_prompt: float = 7e-5
+    optimizer_lr_predictor: float = 7e-5
+    optimizer_weight_decay: float = 1e-4
+    optimizer_grad_clip_norm: float = 1.0
+    scheduler_warmup_steps: int = 200
+
+    prompt_repo_id: str | None = None
+    prompt_root: str | None = None
+    cache_frame_tokens: bool = True
+    drop_n_last_frames: int = 1  # the last frame of an episode has no next observation to predict
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.phase_schedule not in PHASE_SCHEDULES:
+            raise ValueError(
+                f"phase_schedule must be one of {PHASE_SCHEDULES}, got {self.phase_schedule!r}: "
+                "pass --policy.phase_schedule=alternate (Algorithm 1) or joint."
+            )
+        if self.n_obs_steps < 1:
+            raise ValueError(f"n_obs_steps (the context length k) must be >= 1, got {self.n_obs_steps}.")
+        if self.num_action_bins < 2:
+            raise ValueError(f"num_action_bins must be >= 2, got {self.num_action_bins}.")
+        if not self.action_low < self.action_high:
+            raise ValueError(
+                f"action_low ({self.action_low}) must be below action_high ({self.action_high})."
+            )
+        if self.phase_steps < 1:
+            raise ValueError(f"phase_steps must be >= 1, got {self.phase_steps}.")
+
+    @classmethod
+    def small(cls, **overrides) -> "JEPTConfig":
+        """The documented small configuration: trains on a 2-core CPU (random-initialised ResNet-10t
+        backbone at 96 px, context 4, narrow Perceivers and Transformers, 8-frame prompts)."""
+        return cls(**{**SMALL_CPU_OVERRIDES, **overrides})
+
+    # LeRobot contract -------------------------------------------------------------------------------------
+
+    @property
+    def observation_delta_indices(self) -> list[int]:
+        return list(range(1 - self.n_obs_steps, 2))  # k context frames and the next one
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        return list(range(1 - self.n_obs_steps, 1))  # a_{t-k+1} .. a_t
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(
+            lr=self.optimizer_lr_predictor,
+            weight_decay=self.optimizer_weight_decay,
+            grad_clip_norm=self.optimizer_grad_clip_norm,
+        )
+
+    def get_scheduler_preset(self) -> ConstantWithWarmupSchedulerConfig:
+        return ConstantWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
+
+    @property
+    def image_key(self) -> str:
+        return next(iter(self.image_features))
+
+    @property
+    def resolved_action_dim(self) -> int:
+        if ACTION in self.output_features:
+            return self.output_features[ACTION].shape[0]
+        if self.action_dim is None:
+            raise ValueError(
+                "The dataset has no `action` feature (expert videos only), so the action size is unknown: "
+                "pass --policy.action_dim=N (4 for Meta-World)."
+            )
+        return self.action_dim
+
+    def validate_features(self) -> None:
+        if not self.image_features:
+            raise ValueError(
+                "JEPT needs a camera image (an `observation.image*` feature) but the dataset has none: "
+                "build it with `jept-build-metaworld` or add an image feature."
+            )
+        if len(self.image_features) > 1:
+            raise ValueError(
+                f"JEPT uses one camera, the dataset has {sorted(self.image_features)}: keep one with "
+                "--rename_map or remove the others (lerobot.datasets.dataset_tools.remove_feature)."
+            )
+        if OBS_STATE not in self.input_features or self.input_features[OBS_STATE].type != FeatureType.STATE:
+            raise ValueError(
+                "JEPT needs the robot self-state `observation.state` (paper, Appendix B.1) but the dataset "
+                "has none: rebuild the dataset with the state recorded."
+            )
+        if ACTION in self.output_features:
+            shape = self.output_features[ACTION].shape
+            if len(shape) != 1:
+                raise ValueError(
+                    f"JEPT classifies each dimension of a 1-D action into {self.num_action_bins} bins, but "
+                    f"the dataset's `action` has shape {tuple(shape)}: flatten it into a vector."
+                )
+            if self.action_dim is not None and self.action_dim != shape[0]:
+                raise ValueError(
+                    f"--policy.action_dim={self.action_dim} but the dataset's `action` has {shape[0]} "
+                    "dimensions: drop --policy.action_dim (it is only for datasets without actions)."
+                )
+        self.resolved_action_dim  # noqa: B018  (raises a clear error when there is no action at all)
+
+
+SMALL_CPU_OVERRIDES = dict(
+    n_obs_steps=4,
+    image_size=96,
+    vision_backbone="resnet10t",
+    pretrained_backbone=False,
+    freeze_backbone=False,
+    perceiver_dim=96,
+    perceiver_heads=4,
+    perceiver_encoder_self_layers=1,
+    frame_perceiver_latents=16,
+    frame_perceiver_queries=4,
+    frame_perceiver_ff_dim=192,
+    prompt_perceiver_latents=16,
+    prompt_perceiver_queries=8,
+    prompt_perceiver_ff_dim=192,
+    max_prompt_length=8,
+    joint_embedding_dim=64,
+    temporal_dim=96,
+    temporal_heads=4,
+    temporal_layers=1,
+    temporal_ff_dim=192,
+    predictor_dim=128,
+    predictor_heads=4,
+    predictor_layers=2,
+    predictor_ff_dim=256,
+    action_head_dim=64,
+    action_head_heads=4,
+    action_head_layers=1,
+    action_head_ff_dim=128,
+    obs_head_hidden_dim=128,
+    phase_steps=100,
+    prompt_warmup_steps=100,
+    optimizer_lr_encoder=3e-4,
+    optimizer_lr_prompt=7e-4,
+    optimizer_lr_predictor=7e-4,
+    scheduler_warmup_steps=50,
+)

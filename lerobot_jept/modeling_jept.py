@@ -1,0 +1,346 @@
+"""``JEPTPolicy``: the Joint Embedding Predictive Transformer as a LeRobot policy.
+
+Training (paper Section 3.3, Algorithm 1): the k + 1 frames of a sample are tokenised frame by frame (backbone ->
+Perceiver-IO + self-state token), the online temporal encoder gives the predictor's joint embedding inputs, the EMA
+copy of the encoder gives the targets, the causal predictor runs over ``[E_prt | o_1, h_2, ..., o_k, h_{k+1}]`` and
+``forward`` returns ``L_obs + c * L_act``. ``update()`` (called by LeRobot after every optimizer step) moves the EMA
+targets and the step counter that drives the alternating phases and the prompt warm-up.
+
+Control (end of Section 3.2.2): the new frame alone goes through the backbone and the Perceiver, the tokens of the
+previous k - 1 frames and the prompt encoding are reused; the predictor predicts h_{t+1}, which is fed back in to
+predict a_t.
+"""
+
+import copy
+from collections import deque
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from einops import rearrange
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import ACTION, OBS_STATE
+from torch import Tensor, nn
+
+from lerobot_jept.components.backbone import SpatialBackbone
+from lerobot_jept.components.encoders import JointEmbeddingEncoder, ObservationTokenizer, PromptVideoEncoder
+from lerobot_jept.components.predictor import ActionHead, CausalPredictor, ObservationHead
+from lerobot_jept.configuration_jept import JEPTConfig
+from lerobot_jept.discretization import bin_centres
+
+PROMPT_VIDEO = "observation.prompt_video"
+PROMPT_MASK = "observation.prompt_video_mask"
+IGNORE_INDEX = -100  # action labels that take no part in L_act (NaN-marked or padded)
+
+
+class JointEmbeddingTarget(nn.Module):
+    """The single-timestep encoder and the temporal encoder: Psi_obs without its frozen backbone."""
+
+    def __init__(self, config: JEPTConfig, backbone_dim: int, state_dim: int):
+        super().__init__()
+        self.tokenizer = ObservationTokenizer(
+            backbone_dim,
+            state_dim,
+            perceiver=dict(
+                num_latents=config.frame_perceiver_latents,
+                num_queries=config.frame_perceiver_queries,
+                ff_dim=config.frame_perceiver_ff_dim,
+                dropout=config.frame_perceiver_dropout,
+                **_perceiver_structure(config),
+            ),
+            dim=config.perceiver_dim,
+        )
+        self.temporal = JointEmbeddingEncoder(
+            config.perceiver_dim,
+            config.temporal_dim,
+            config.joint_embedding_dim,
+            heads=config.temporal_heads,
+            ff_dim=config.temporal_ff_dim,
+            layers=config.temporal_layers,
+            dropout=config.temporal_dropout,
+            max_steps=config.n_obs_steps + 1,
+            tokens_per_step=config.frame_perceiver_queries + 1,
+        )
+
+
+def _perceiver_structure(config: JEPTConfig) -> dict:
+    return dict(
+        heads=config.perceiver_heads,
+        encoder_cross_layers=config.perceiver_encoder_cross_layers,
+        encoder_self_layers=config.perceiver_encoder_self_layers,
+        decoder_cross_layers=config.perceiver_decoder_cross_layers,
+    )
+
+
+class JEPT(nn.Module):
+    """The network: backbone, Psi_obs (online and EMA target), Psi_prt, Psi_pred, Gamma_obs, Gamma_act."""
+
+    def __init__(self, config: JEPTConfig):
+        super().__init__()
+        self.config = config
+        self.backbone = SpatialBackbone(
+            config.vision_backbone,
+            config.pretrained_backbone,
+            config.freeze_backbone,
+            config.image_size,
+            config.backbone_weights_path,
+        )
+        state_dim = config.input_features[OBS_STATE].shape[0]
+        self.encoder = JointEmbeddingTarget(config, self.backbone.dim, state_dim)
+        self.target_encoder = copy.deepcopy(self.encoder).requires_grad_(False)
+        self.prompt_encoder = PromptVideoEncoder(
+            self.backbone.dim,
+            frame_perceiver=dict(
+                num_latents=config.frame_perceiver_latents,
+                num_queries=config.frame_perceiver_queries,
+                ff_dim=config.frame_perceiver_ff_dim,
+                dropout=config.frame_perceiver_dropout,
+                **_perceiver_structure(config),
+            ),
+            video_perceiver=dict(
+                num_latents=config.prompt_perceiver_latents,
+                num_queries=config.prompt_perceiver_queries,
+                ff_dim=config.prompt_perceiver_ff_dim,
+                dropout=config.prompt_perceiver_dropout,
+                **_perceiver_structure(config),
+            ),
+            dim=config.perceiver_dim,
+            max_frames=config.max_prompt_length,
+        )
+        tokens_per_step = config.frame_perceiver_queries + 1
+        self.predictor = CausalPredictor(
+            config.perceiver_dim,
+            config.joint_embedding_dim,
+            config.predictor_dim,
+            heads=config.predictor_heads,
+            ff_dim=config.predictor_ff_dim,
+            layers=config.predictor_layers,
+            dropout=config.predictor_dropout,
+            max_steps=config.n_obs_steps,
+            tokens_per_step=tokens_per_step,
+        )
+        self.obs_head = ObservationHead(
+            config.predictor_dim,
+            config.joint_embedding_dim,
+            config.obs_head_hidden_dim,
+            config.obs_head_layers,
+        )
+        self.action_head = ActionHead(
+            config.predictor_dim,
+            config.resolved_action_dim,
+            config.num_action_bins,
+            dim=config.action_head_dim,
+            heads=config.action_head_heads,
+            layers=config.action_head_layers,
+            ff_dim=config.action_head_ff_dim,
+        )
+
+    def phase_modules(self) -> dict[str, list[nn.Module]]:
+        """Algorithm 1's two phases: the joint embedding encoder, and every other trained component."""
+        return {
+            "encoder": [self.encoder],
+            "others": [self.prompt_encoder, self.predictor, self.obs_head, self.action_head],
+        }
+
+    def backbone_tokens(self, images: Tensor) -> Tensor:
+        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution."""
+        lead = images.shape[:-3]
+        flat = images.reshape(-1, *images.shape[-3:])
+        size = self.config.image_size
+        if flat.shape[-2:] != (size, size):
+            flat = F.interpolate(
+                flat, size=(size, size), mode="bilinear", antialias=True, align_corners=False
+            )
+        tokens = self.backbone(flat)
+        return tokens.reshape(*lead, *tokens.shape[1:])
+
+    def tokenize(self, encoder: JointEmbeddingTarget, tokens: Tensor, state: Tensor) -> Tensor:
+        """Backbone tokens (B, T, P, C) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
+        b = tokens.shape[0]
+        obs = encoder.tokenizer(
+            rearrange(tokens, "b t p c -> (b t) p c"), rearrange(state, "b t s -> (b t) s")
+        )
+        return rearrange(obs, "(b t) n d -> b t n d", b=b)
+
+    def encode_prompt(self, video: Tensor, mask: Tensor | None) -> Tensor:
+        """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D)."""
+        return self.prompt_encoder(self.backbone_tokens(video), mask)
+
+    def predict(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
+        """Predicted joint embeddings (B, k, N, J) from the obs tokens and action logits (B, k, A, bins)."""
+        z_obs, z_emb = self.predictor(prompt, obs, emb)
+        return self.obs_head(z_obs), self.action_head(z_emb)
+
+    @torch.no_grad()
+    def update_target(self, decay: float) -> None:
+        for target, online in zip(self.target_encoder.parameters(), self.encoder.parameters(), strict=True):
+            target.lerp_(online.detach(), 1.0 - decay)
+
+
+class JEPTPolicy(PreTrainedPolicy):
+    """Video-conditioned policy pi(a_t | o_{t-k+1..t}, prompt video) learned from demos and action-free videos."""
+
+    config_class = JEPTConfig
+    name = "jept"
+
+    def __init__(self, config: JEPTConfig, **kwargs):
+        super().__init__(config)
+        config.validate_features()
+        self.config = config
+        self.model = JEPT(config)
+        # Optimizer steps taken; persistent so a resumed run continues the phase and warm-up schedule.
+        self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
+        centres = bin_centres(config.num_action_bins, config.action_low, config.action_high)
+        self.register_buffer("bin_centres", torch.as_tensor(centres, dtype=torch.float32), persistent=False)
+        self.reset()
+
+    # Training ---------------------------------------------------------------------------------------------
+
+    def get_optim_params(self) -> list[dict]:
+        cfg, m = self.config, self.model
+        groups = [
+            (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
+            (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+            (cfg.optimizer_lr_predictor, [m.predictor, m.obs_head, m.action_head]),
+        ]
+        return [
+            {"params": [p for mod in mods for p in mod.parameters() if p.requires_grad], "lr": lr}
+            for lr, mods in groups
+        ]
+
+    @property
+    def phase(self) -> str:
+        if self.config.phase_schedule == "joint":
+            return "joint"
+        return ("encoder", "others")[(int(self.num_updates) // self.config.phase_steps) % 2]
+
+    @property
+    def prompt_active(self) -> bool:
+        return int(self.num_updates) >= self.config.prompt_warmup_steps
+
+    def _apply_phase(self) -> None:
+        """Parameters outside the current phase get no gradient, so AdamW leaves them (and their moments)
+        untouched: Algorithm 1's alternation inside LeRobot's single optimizer."""
+        phase = self.phase
+        for name, modules in self.model.phase_modules().items():
+            for module in modules:
+                module.requires_grad_(phase in ("joint", name))
+        if not self.config.freeze_backbone:
+            self.model.backbone.requires_grad_(phase in ("joint", "encoder"))
+
+    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
+        cfg, m = self.config, self.model
+        if self.training:
+            self._apply_phase()
+        images, state = batch[cfg.image_key], batch[OBS_STATE]  # (B, k+1, 3, H, W), (B, k+1, S)
+        k = cfg.n_obs_steps
+        tokens = m.backbone_tokens(images)
+        obs = m.tokenize(m.encoder, tokens, state)
+        h_in = m.encoder.temporal.context_embeddings(obs)[:, 1:]
+        with torch.no_grad():
+            target_obs = m.tokenize(m.target_encoder, tokens.detach(), state)
+            targets = m.target_encoder.temporal.context_embeddings(target_obs)[:, 1:]
+        prompt = self._prompt(batch) if self.prompt_active else None
+        pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
+
+        # L_obs (eq. 7): L2 distance per token, averaged over tokens and over the frames whose target is real.
+        dist = torch.linalg.vector_norm(pred_h - targets, dim=-1).mean(-1)  # (B, k)
+        pad = batch.get(f"{cfg.image_key}_is_pad")
+        frame_ok = torch.ones_like(dist) if pad is None else (~pad[:, 1:]).float()
+        loss_obs = (dist * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
+
+        # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
+        labels = self._action_labels(batch, logits.shape[:3])
+        ce = F.cross_entropy(
+            rearrange(logits, "b k a c -> b c k a"), labels, ignore_index=IGNORE_INDEX, reduction="none"
+        )
+        labelled = (labels != IGNORE_INDEX).float()
+        loss_act = (ce * labelled).sum((1, 2)) / labelled.sum((1, 2)).clamp_min(1)
+        per_sample = loss_obs + cfg.action_loss_weight * loss_act
+
+        has_label = labelled.sum((1, 2)) > 0
+        info = {
+            "loss_obs": loss_obs.mean().item(),
+            "loss_act": (loss_act.sum() / has_label.sum().clamp_min(1)).item(),
+            "labelled_fraction": labelled[..., 0].mean().item(),
+            "phase_encoder": float(self.phase == "encoder"),
+            "prompt_on": float(prompt is not None),
+        }
+        if reduction == "none":
+            return per_sample, info
+        loss_act_mean = (loss_act * has_label).sum() / has_label.sum().clamp_min(1)
+        return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean, info
+
+    def _action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
+        """Bin indices (B, k, A) from the discretised ``action``; IGNORE_INDEX where NaN-marked or padded."""
+        actions = batch.get(ACTION)
+        if actions is None:  # a dataset without actions: visual transition only
+            return torch.full(shape, IGNORE_INDEX, dtype=torch.long, device=self.bin_centres.device)
+        if actions.is_floating_point():
+            raise ValueError(
+                "JEPT expects `action` as bin indices from its preprocessor (jept_action_bins). Pass batches "
+                "through the policy's preprocessor (make_pre_post_processors) before policy.forward."
+            )
+        labels = actions.clone()
+        pad = batch.get(f"{ACTION}_is_pad")
+        if pad is not None:
+            labels[pad] = IGNORE_INDEX
+        labels[(labels == IGNORE_INDEX).any(-1)] = IGNORE_INDEX  # a frame is labelled in full or not at all
+        return labels
+
+    def _prompt(self, batch: dict[str, Tensor]) -> Tensor:
+        if PROMPT_VIDEO not in batch:
+            raise KeyError(
+                f"JEPT needs a prompt video: the batch has no {PROMPT_VIDEO!r}. Set --policy.prompt_repo_id to a "
+                "prompt bank (the builder's ORG/NAME_prompts) or pass the prompt video as an observation."
+            )
+        return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK))
+
+    def update(self) -> None:
+        """After every optimizer step: move the EMA targets, count the step."""
+        self.model.update_target(self.config.ema_decay)
+        self.num_updates += 1
+
+    # Control ----------------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Start of an episode: forget the context and the prompt encoding."""
+        self._obs_tokens: deque[Tensor] = deque(maxlen=self.config.n_obs_steps)
+        self._frames: deque[tuple[Tensor, Tensor]] = deque(maxlen=self.config.n_obs_steps)
+        self._prompt_cache: Tensor | None = None
+        self._prompt_cached = False
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """(B, 1, action_dim): the action of the current step as a one-step chunk."""
+        return self.select_action(batch)[:, None]
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """(B, action_dim) bin-centre actions for the current observation."""
+        cfg, m = self.config, self.model
+        obs = self._context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
+        if not self._prompt_cached:
+            self._prompt_cache = self._prompt(batch) if self.prompt_active else None
+            self._prompt_cached = True
+        h_past = m.encoder.temporal.context_embeddings(obs)[:, 1:]  # h_{t-k+2} .. h_t
+        placeholder = (
+            torch.zeros_like(h_past[:, :1])
+            if h_past.shape[1]
+            else obs.new_zeros(obs.shape[0], 1, obs.shape[2], cfg.joint_embedding_dim)
+        )
+        pred_h, _ = m.predict(self._prompt_cache, obs, torch.cat([h_past, placeholder], 1))
+        _, logits = m.predict(self._prompt_cache, obs, torch.cat([h_past, pred_h[:, -1:]], 1))
+        return self.bin_centres[logits[:, -1].argmax(-1)]
+
+    def _context_tokens(self, image: Tensor, state: Tensor) -> Tensor:
+        """Observation tokens of the last k frames (B, k, N, D); the first frame fills the context at the start
+        of an episode, as LeRobot's frame clamping does in training."""
+        m, k = self.model, self.config.n_obs_steps
+        if self.config.cache_frame_tokens:
+            new = m.tokenize(m.encoder, m.backbone_tokens(image[:, None]), state[:, None])[:, 0]
+            self._obs_tokens.extend([new] * (k - len(self._obs_tokens)) if not self._obs_tokens else [new])
+            return torch.stack(list(self._obs_tokens), dim=1)
+        self._frames.extend([(image, state)] * (k if not self._frames else 1))
+        images = torch.stack([f[0] for f in self._frames], 1)
+        states = torch.stack([f[1] for f in self._frames], 1)
+        return m.tokenize(m.encoder, m.backbone_tokens(images), states)

@@ -1,0 +1,163 @@
+"""``make_jept_pre_post_processors``: LeRobot's standard steps plus JEPT's own two.
+
+Preprocessor: ``rename_observations_processor`` -> ``to_batch_processor`` -> ``jept_prompt_video`` ->
+``device_processor`` -> ``normalizer_processor`` -> ``jept_action_bins``. Postprocessor:
+``unnormalizer_processor`` -> ``device_processor`` (cpu). Both JEPT steps serialise their parameters with the
+checkpoint (``get_config``).
+"""
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from lerobot.processor import (
+    PolicyAction,
+    PolicyProcessorPipeline,
+    ProcessorStep,
+    ProcessorStepRegistry,
+    TransitionKey,
+)
+from lerobot.processor.factory import make_default_policy_processor_steps, make_policy_processor_pipelines
+from torch import Tensor
+
+from lerobot_jept.configuration_jept import JEPTConfig
+from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_MASK, PROMPT_VIDEO
+from lerobot_jept.prompts import PromptBank, resize_frames
+
+
+@ProcessorStepRegistry.register("jept_action_bins")
+@dataclass
+class JeptActionBinsStep(ProcessorStep):
+    """Continuous ``action`` -> bin indices (long) over [low, high]; NaN-marked actions -> IGNORE_INDEX.
+
+    Values outside the range are clipped into the end bins and counted (``num_clipped`` of ``num_values``).
+    A transition without an action (inference) passes through.
+    """
+
+    num_bins: int = 7
+    low: float = -1.0
+    high: float = 1.0
+    num_clipped: int = field(default=0, init=False)
+    num_values: int = field(default=0, init=False)
+
+    def __call__(self, transition):
+        action = transition.get(TransitionKey.ACTION)
+        if action is None or not torch.is_tensor(action) or not action.is_floating_point():
+            return transition
+        finite = torch.isfinite(action)
+        outside = finite & ((action < self.low) | (action > self.high))
+        clipped = int(outside.sum())
+        if clipped and not self.num_clipped:
+            logging.warning(
+                "jept_action_bins: %d action values lie outside [%s, %s] and are clipped into the end bins; "
+                "set --policy.action_low/--policy.action_high to the env's action range if this is wrong.",
+                clipped,
+                self.low,
+                self.high,
+            )
+        self.num_clipped += clipped
+        self.num_values += int(finite.sum())
+        scaled = (action.clamp(self.low, self.high) - self.low) / (self.high - self.low) * (self.num_bins - 1)
+        bins = torch.where(finite, scaled.round(), torch.full_like(scaled, IGNORE_INDEX)).long()
+        new = dict(transition)
+        new[TransitionKey.ACTION] = bins
+        return new
+
+    def get_config(self) -> dict[str, Any]:
+        return {"num_bins": self.num_bins, "low": self.low, "high": self.high}
+
+    def transform_features(self, features):
+        return features
+
+
+@ProcessorStepRegistry.register("jept_prompt_video")
+@dataclass
+class JeptPromptVideoStep(ProcessorStep):
+    """Attach the prompt video ``observation.prompt_video`` (B, N, 3, H, W) in [0, 1] and its frame mask.
+
+    A prompt given by the caller is kept (resized to ``image_size`` if needed). Otherwise one comes from the
+    prompt bank ``repo_id`` by the sample's ``task``: a random prompt of the task for dataset samples (they
+    carry an ``index``), the task's first prompt at inference.
+    """
+
+    repo_id: str | None = None
+    root: str | None = None
+    max_frames: int = 250
+    image_size: int = 224
+    _bank: PromptBank | None = field(default=None, init=False, repr=False)
+
+    @property
+    def bank(self) -> PromptBank:
+        if self._bank is None:
+            self._bank = PromptBank(self.repo_id, self.root, self.max_frames, self.image_size)
+        return self._bank
+
+    def __call__(self, transition):
+        observation = dict(transition.get(TransitionKey.OBSERVATION) or {})
+        if PROMPT_VIDEO in observation:
+            observation[PROMPT_VIDEO] = self._as_given(observation[PROMPT_VIDEO])
+        else:
+            complementary = transition.get(TransitionKey.COMPLEMENTARY_DATA) or {}
+            tasks = complementary.get("task")
+            if tasks is None:
+                raise ValueError(
+                    "jept_prompt_video: the batch has neither `observation.prompt_video` nor a `task` string "
+                    "to look a prompt up by."
+                )
+            if self.repo_id is None:
+                raise ValueError(
+                    "JEPT needs a prompt video but none was given and no prompt bank is set: pass "
+                    "--policy.prompt_repo_id=ORG/NAME_prompts (built by jept-build-metaworld)."
+                )
+            tasks = [tasks] if isinstance(tasks, str) else list(tasks)
+            training = "index" in complementary
+            episodes = []
+            for task in tasks:
+                candidates = self.bank.episodes(task)
+                pick = int(torch.randint(len(candidates), ())) if training else 0
+                episodes.append(candidates[pick])
+            observation[PROMPT_VIDEO], observation[PROMPT_MASK] = self.bank.batch(episodes)
+        new = dict(transition)
+        new[TransitionKey.OBSERVATION] = observation
+        return new
+
+    def _as_given(self, video: Tensor) -> Tensor:
+        if video.ndim == 4:
+            video = video[None]
+        if video.ndim != 5 or video.shape[2] != 3:
+            raise ValueError(
+                f"observation.prompt_video must be (B, N, 3, H, W) floats in [0, 1], got {tuple(video.shape)}."
+            )
+        b, n = video.shape[:2]
+        return resize_frames(video.flatten(0, 1).float(), self.image_size).view(
+            b, n, 3, *([self.image_size] * 2)
+        )
+
+    def get_config(self) -> dict[str, Any]:
+        return {
+            "repo_id": self.repo_id,
+            "root": self.root,
+            "max_frames": self.max_frames,
+            "image_size": self.image_size,
+        }
+
+    def transform_features(self, features):
+        return features
+
+
+def make_jept_pre_post_processors(
+    config: JEPTConfig, dataset_stats: dict[str, dict[str, Tensor]] | None = None, **kwargs
+) -> tuple[
+    PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
+    PolicyProcessorPipeline[PolicyAction, PolicyAction],
+]:
+    s = make_default_policy_processor_steps(config, dataset_stats)
+    prompt = JeptPromptVideoStep(
+        config.prompt_repo_id, config.prompt_root, config.max_prompt_length, config.image_size
+    )
+    bins = JeptActionBinsStep(config.num_action_bins, config.action_low, config.action_high)
+    return make_policy_processor_pipelines(
+        input_steps=[s.rename_observations, s.add_batch_dim, prompt, s.to_device, s.normalize, bins],
+        output_steps=[s.unnormalize, s.to_cpu],
+    )
