@@ -10,3 +10,33 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("SVT_LOG", "1")
 os.environ["HF_LEROBOT_HOME"] = tempfile.mkdtemp(prefix="jept_lerobot_home_")
+
+import pytest  # noqa: E402
+
+from dataset_builders.core import build  # noqa: E402
+from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator  # noqa: E402
+
+SIM = MetaworldSimulator()
+TINY = dict(
+    demo_tasks=["button-press-v3", "reach-v3"],
+    video_tasks=["drawer-close-v3"],
+    unseen_tasks=["handle-press-v3"],
+    episodes_per_task=3,
+    prompts_per_task=2,
+    image_size=64,
+    episodes_per_shard=2,
+)
+
+
+def load(repo_id: str, **kwargs):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset(repo_id, **kwargs)  # found under $HF_LEROBOT_HOME, as lerobot-train finds it
+
+
+@pytest.fixture(scope="session")
+def tiny_build():
+    """A real tiny Meta-World build, ``test/mw_tiny_{demo,video,prompts,mix}``, shared by all tests."""
+    cfg = MetaworldBuildConfig(repo_id="test/mw_tiny", **TINY)
+    summary = build(cfg, SIM)
+    return cfg, summary

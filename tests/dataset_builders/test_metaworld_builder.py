@@ -14,29 +14,9 @@ import pandas as pd
 import pytest
 
 from dataset_builders.core import BUILD_FILE, BuildError, build
-from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator, main
+from dataset_builders.metaworld import MetaworldBuildConfig, main
 from lerobot_jept.envs.metaworld import STATE_DIM, JeptMetaworldEnv, task_description
-
-SIM = MetaworldSimulator()
-TINY = dict(
-    demo_tasks=["button-press-v3", "reach-v3"],
-    video_tasks=["drawer-close-v3"],
-    unseen_tasks=["handle-press-v3"],
-    episodes_per_task=3,
-    prompts_per_task=2,
-    image_size=64,
-    episodes_per_shard=2,
-)
-
-
-def lerobot_home() -> Path:
-    return Path(os.environ["HF_LEROBOT_HOME"])
-
-
-def load(repo_id: str):
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    return LeRobotDataset(repo_id)  # found under $HF_LEROBOT_HOME, as lerobot-train finds it
+from tests.conftest import SIM, TINY, load
 
 
 def actions_of(root: Path) -> np.ndarray:
@@ -44,11 +24,8 @@ def actions_of(root: Path) -> np.ndarray:
     return np.stack(frames["action"].to_numpy())
 
 
-@pytest.fixture(scope="module")
-def tiny_build():
-    cfg = MetaworldBuildConfig(repo_id="test/mw_tiny", **TINY)
-    summary = build(cfg, SIM)
-    return cfg, summary
+def lerobot_home() -> Path:
+    return Path(os.environ["HF_LEROBOT_HOME"])
 
 
 def test_repo_schemas(tiny_build):

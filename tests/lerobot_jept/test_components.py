@@ -103,7 +103,9 @@ def test_pretrained_weights_without_network_say_how_to_proceed(monkeypatch):
 
 def test_context_embeddings_see_only_frames_up_to_their_own():
     torch.manual_seed(0)
-    enc = JointEmbeddingEncoder(D, 48, J, heads=2, ff_dim=64, layers=2, dropout=0.0, max_steps=8, tokens_per_step=5)
+    enc = JointEmbeddingEncoder(
+        D, 48, J, heads=2, ff_dim=64, layers=2, dropout=0.0, max_steps=8, tokens_per_step=5
+    )
     obs = torch.randn(2, 4, 5, D)
     h = enc.context_embeddings(obs)
     obs2 = obs.clone()

@@ -1,0 +1,316 @@
+"""The `jept` policy on a real tiny Meta-World build: losses, masking, EMA, phases, save/load, control cache."""
+
+import copy
+
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.datasets.factory import resolve_delta_timestamps
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot.processor import PolicyProcessorPipeline
+from safetensors.torch import load_file
+
+from lerobot_jept import JEPTConfig, JEPTPolicy
+from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_VIDEO
+from lerobot_jept.processor_jept import JeptActionBinsStep
+from lerobot_jept.prompts import PromptNotFoundError
+from tests.conftest import load
+
+MIX, PROMPTS = "test/mw_tiny_mix", "test/mw_tiny_prompts"
+
+
+def tiny_config(**overrides) -> JEPTConfig:
+    """The small CPU configuration at the tiny build's 64 px, without dropout so outputs are deterministic."""
+    fields = dict(
+        device="cpu",
+        image_size=64,
+        max_prompt_length=4,
+        prompt_repo_id=PROMPTS,
+        frame_perceiver_dropout=0.0,
+        prompt_perceiver_dropout=0.0,
+        temporal_dropout=0.0,
+        predictor_dropout=0.0,
+        phase_schedule="joint",
+        prompt_warmup_steps=0,
+    )
+    return JEPTConfig.small(**{**fields, **overrides})
+
+
+def build_policy(tiny_build, **overrides):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    torch.manual_seed(0)
+    cfg = tiny_config(**overrides)
+    meta = LeRobotDatasetMetadata(MIX)
+    policy = make_policy(cfg, ds_meta=meta)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    return policy, pre, post
+
+
+def mixed_batch(cfg, size=8, seed=0):
+    """A batch with both demo frames (actions) and video frames (NaN actions), as lerobot-train samples it."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    ds = load(MIX, delta_timestamps=resolve_delta_timestamps(cfg, LeRobotDatasetMetadata(MIX)))
+    g = torch.Generator().manual_seed(seed)
+    labelled = torch.isfinite(torch.stack(list(ds.hf_dataset["action"]))).all(-1)
+    pick = [torch.nonzero(labelled == flag).flatten() for flag in (True, False)]
+    idx = [
+        int(p[i])
+        for p, n in zip(pick, (size - size // 2, size // 2), strict=True)
+        for i in torch.randperm(len(p), generator=g)[:n]
+    ]
+    batch = torch.utils.data.default_collate([ds[i] for i in idx])
+    assert torch.isnan(batch["action"]).any() and torch.isfinite(batch["action"]).any()
+    return batch
+
+
+@pytest.fixture(scope="module")
+def policy_and_batch(tiny_build):
+    policy, pre, post = build_policy(tiny_build)
+    torch.manual_seed(0)
+    return policy, pre, post, pre(mixed_batch(policy.config))
+
+
+def test_make_policy_from_dataset_metadata(policy_and_batch):
+    policy, _, _, batch = policy_and_batch
+    cfg = policy.config
+    assert isinstance(policy, JEPTPolicy)
+    assert cfg.image_key == "observation.image" and cfg.resolved_action_dim == 4
+    assert cfg.input_features["observation.state"].shape == (18,)
+    k = cfg.n_obs_steps
+    assert batch["observation.image"].shape == (8, k + 1, 3, 64, 64)
+    assert batch[PROMPT_VIDEO].shape[:3] == (8, 4, 3)
+    assert batch["action"].dtype == torch.long and batch["action"].shape == (8, k, 4)
+
+
+def test_forward_returns_both_losses_and_labelled_fraction(policy_and_batch):
+    policy, _, _, batch = policy_and_batch
+    policy.eval()
+    loss, info = policy.forward(batch)
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    assert {"loss_obs", "loss_act", "labelled_fraction"} <= set(info)
+    labels = batch["action"].clone()
+    labels[batch["action_is_pad"]] = IGNORE_INDEX
+    expected = (labels != IGNORE_INDEX).all(-1).float().mean().item()
+    assert 0 < expected < 1 and info["labelled_fraction"] == pytest.approx(expected)
+    assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"], rel=1e-4)
+    per_sample, _ = policy.forward(batch, reduction="none")
+    assert per_sample.shape == (8,)
+
+
+def test_unlabelled_and_padded_actions_contribute_nothing(policy_and_batch):
+    policy, _, _, batch = policy_and_batch
+    policy.eval()
+    torch.manual_seed(1)
+    base, _ = policy.forward(batch)
+    labels = batch["action"]
+    unlabelled = (labels == IGNORE_INDEX).any(-1) | batch["action_is_pad"]
+    assert unlabelled.any() and (~unlabelled).any()
+    changed = dict(batch)
+    changed["action"] = labels.clone()
+    # a padded frame gets a valid but different label; a NaN-marked frame gets labels in its other dims
+    changed["action"][unlabelled] = (labels[unlabelled].clamp_min(0) + 3) % 7
+    changed["action"][(labels == IGNORE_INDEX).any(-1)] = torch.tensor([1, IGNORE_INDEX, 2, 3])
+    changed["action_is_pad"] = batch["action_is_pad"]
+    torch.manual_seed(1)
+    assert policy.forward(changed)[0].item() == pytest.approx(base.item(), abs=1e-6)
+    labelled = (~unlabelled).nonzero()[0]
+    changed["action"][labelled[0], labelled[1]] = (labels[labelled[0], labelled[1]] + 1) % 7
+    assert policy.forward(changed)[0].item() != pytest.approx(base.item(), abs=1e-6)
+
+
+def test_action_bins_step_maps_nan_to_ignore_and_counts_clipping():
+    from lerobot.processor import TransitionKey
+
+    step = JeptActionBinsStep(num_bins=7, low=-1, high=1)
+    action = torch.tensor([[-1.0, 0.0, 1.0, 0.34], [float("nan")] * 4, [2.0, -3.0, 0.5, -0.5]])
+    out = step({TransitionKey.ACTION: action})[TransitionKey.ACTION]
+    assert out.tolist() == [[0, 3, 6, 4], [IGNORE_INDEX] * 4, [6, 0, 4, 2]]  # ties round half to even
+    assert (step.num_clipped, step.num_values) == (2, 8)
+    assert step({TransitionKey.ACTION: None})[TransitionKey.ACTION] is None  # inference: no action
+
+
+def test_ema_update_moves_targets_and_only_targets(tiny_build):
+    policy, pre, _ = build_policy(tiny_build, ema_decay=0.5)
+    model = policy.model
+    with torch.no_grad():
+        for p in model.encoder.parameters():
+            p.add_(0.1)
+    online = copy.deepcopy(model.encoder.state_dict())
+    target = copy.deepcopy(model.target_encoder.state_dict())
+    policy.update()
+    for name, value in model.target_encoder.state_dict().items():
+        if value.is_floating_point():
+            torch.testing.assert_close(value, 0.5 * target[name] + 0.5 * online[name])
+    for name, value in model.encoder.state_dict().items():
+        torch.testing.assert_close(value, online[name])
+    assert not any(p.requires_grad for p in model.target_encoder.parameters())
+    assert int(policy.num_updates) == 1
+
+
+def test_alternating_phases_update_only_their_parameters(tiny_build):
+    policy, pre, _ = build_policy(tiny_build, phase_schedule="alternate", phase_steps=1)
+    batch = pre(mixed_batch(policy.config, size=4))
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), weight_decay=1e-2)
+    modules = policy.model.phase_modules()
+    modules["encoder"].append(policy.model.backbone)  # the small config trains its backbone in this phase
+    policy.train()
+    for expected in ("encoder", "others", "encoder"):
+        assert policy.phase == expected
+        before = {
+            n: [p.detach().clone() for p in m.parameters()] for n, ms in modules.items() for m in ms[:1]
+        }
+        loss, info = policy.forward(batch)
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad()
+        policy.update()
+        for name, params in before.items():
+            first = modules[name][0]
+            moved = any(not torch.equal(a, b) for a, b in zip(params, first.parameters(), strict=True))
+            assert moved == (name == expected), (expected, name)
+        assert info["phase_encoder"] == float(expected == "encoder")
+
+
+def test_prompt_warmup_excludes_the_prompt_at_first(tiny_build):
+    policy, pre, _ = build_policy(tiny_build, prompt_warmup_steps=2)
+    batch = pre(mixed_batch(policy.config, size=2))
+    assert policy.forward(batch)[1]["prompt_on"] == 0.0
+    policy.update()
+    policy.update()
+    assert policy.forward(batch)[1]["prompt_on"] == 1.0
+
+
+def test_save_and_reload_gives_identical_outputs_and_processors(policy_and_batch, tmp_path):
+    policy, pre, post, batch = policy_and_batch
+    policy.eval()
+    policy.save_pretrained(tmp_path)
+    pre.save_pretrained(tmp_path)
+    post.save_pretrained(tmp_path)
+    saved = set(load_file(tmp_path / "model.safetensors"))
+    assert saved == set(policy.state_dict())  # strict=False loading would hide a missing key
+    reloaded = JEPTPolicy.from_pretrained(tmp_path).eval()
+    pre2 = PolicyProcessorPipeline.from_pretrained(tmp_path, "policy_preprocessor.json")
+    assert [type(s).__name__ for s in pre2.steps] == [type(s).__name__ for s in pre.steps]
+    assert pre2.steps[2].get_config() == pre.steps[2].get_config()
+    torch.manual_seed(0)
+    a = policy.forward(batch)[0]
+    torch.manual_seed(0)
+    b = reloaded.forward(batch)[0]
+    torch.testing.assert_close(a, b)
+    obs = {
+        "observation.image": batch["observation.image"][:2, -1],
+        "observation.state": batch["observation.state"][:2, -1],
+    }
+    obs[PROMPT_VIDEO] = batch[PROMPT_VIDEO][:2]
+    policy.reset()
+    reloaded.reset()
+    torch.testing.assert_close(policy.select_action(obs), reloaded.select_action(obs))
+
+
+def test_cached_and_uncached_control_give_the_same_actions(tiny_build):
+    policy, pre, post = build_policy(tiny_build)
+    uncached = copy.deepcopy(policy)
+    uncached.config = copy.deepcopy(policy.config)
+    uncached.config.cache_frame_tokens = False
+    policy.eval(), uncached.eval()
+    ds = load(MIX)
+    episode = ds.meta.episodes[0]
+    frames = [ds[episode["dataset_from_index"] + i] for i in range(7)]  # wraps the k = 4 context
+    for p in (policy, uncached):
+        p.reset()
+    for frame in frames:
+        obs = pre(
+            {
+                "observation.image": frame["observation.image"],
+                "observation.state": frame["observation.state"],
+                "task": frame["task"],
+            }
+        )
+        a, b = policy.select_action(obs), uncached.select_action(obs)
+        assert a.shape == (1, 4)
+        torch.testing.assert_close(a, b)
+        centres = torch.linspace(-1, 1, 7)
+        assert (post(a)[..., None] - centres).abs().min(-1).values.max() < 1e-6  # executed: bin centres
+
+
+def test_overfits_a_tiny_batch(tiny_build):
+    policy, pre, _ = build_policy(tiny_build)
+    batch = pre(mixed_batch(policy.config, size=4, seed=3))
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-3)
+    policy.train()
+    first = policy.forward(batch)[1]
+    for _ in range(40):
+        loss, info = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        policy.update()
+    assert info["loss_act"] < 0.5 * first["loss_act"]
+    assert info["loss_obs"] < first["loss_obs"]
+
+
+def test_prompt_bank_lookup(tiny_build):
+    from lerobot.processor import TransitionKey
+
+    _, pre, _ = build_policy(tiny_build)
+    step = pre.steps[2]
+    obs = {TransitionKey.OBSERVATION: {}, TransitionKey.COMPLEMENTARY_DATA: {"task": ["Press a handle down"]}}
+    first = step(obs)[TransitionKey.OBSERVATION][PROMPT_VIDEO]
+    again = step(obs)[TransitionKey.OBSERVATION][PROMPT_VIDEO]
+    torch.testing.assert_close(first, again)  # inference: deterministic
+    assert first.shape == (1, 4, 3, 64, 64) and first.min() >= 0 and first.max() <= 1 and first.std() > 0.05
+    training = {
+        **obs,
+        TransitionKey.COMPLEMENTARY_DATA: {"task": ["Press a handle down"] * 16, "index": torch.arange(16)},
+    }
+    videos = step(training)[TransitionKey.OBSERVATION][PROMPT_VIDEO]
+    assert any(not torch.equal(videos[0], v) for v in videos[1:])  # training: random prompt of the task
+    given = torch.rand(1, 3, 3, 32, 32)
+    out = step({**obs, TransitionKey.OBSERVATION: {PROMPT_VIDEO: given}})[TransitionKey.OBSERVATION]
+    assert out[PROMPT_VIDEO].shape == (1, 3, 3, 64, 64)  # the caller's prompt, at model resolution
+    with pytest.raises(PromptNotFoundError, match=r"'Open a door'.*test/mw_tiny_prompts"):
+        step({**obs, TransitionKey.COMPLEMENTARY_DATA: {"task": ["Open a door"]}})
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda f: f.pop("observation.image"), "needs a camera image"),
+        (lambda f: f.pop("observation.state"), "self-state"),
+    ],
+)
+def test_validate_features_names_the_fix(change, message):
+    features = {
+        "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 64, 64)),
+        "observation.state": PolicyFeature(FeatureType.STATE, (18,)),
+    }
+    change(features)
+    cfg = tiny_config(
+        input_features=features, output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))}
+    )
+    with pytest.raises(ValueError, match=message):
+        cfg.validate_features()
+
+
+def test_validate_features_action_checks():
+    inputs = {
+        "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 64, 64)),
+        "observation.state": PolicyFeature(FeatureType.STATE, (18,)),
+    }
+    with pytest.raises(ValueError, match="flatten"):
+        tiny_config(
+            input_features=inputs, output_features={"action": PolicyFeature(FeatureType.ACTION, (2, 4))}
+        ).validate_features()
+    with pytest.raises(ValueError, match="drop --policy.action_dim"):
+        tiny_config(
+            input_features=inputs,
+            action_dim=7,
+            output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
+        ).validate_features()
+    with pytest.raises(ValueError, match="--policy.action_dim=N"):
+        tiny_config(input_features=inputs, output_features={}).validate_features()
+    tiny_config(
+        input_features=inputs, output_features={}, action_dim=4
+    ).validate_features()  # expert videos only
