@@ -4,7 +4,8 @@ Importing this package registers the ``jept`` policy type, its processor steps a
 """
 
 from lerobot_jept.configuration_jept import JEPTConfig
+from lerobot_jept.envs.configs import JeptMetaworldEnvConfig
 from lerobot_jept.modeling_jept import JEPTPolicy
 from lerobot_jept.processor_jept import make_jept_pre_post_processors
 
-__all__ = ["JEPTConfig", "JEPTPolicy", "make_jept_pre_post_processors"]
+__all__ = ["JEPTConfig", "JEPTPolicy", "JeptMetaworldEnvConfig", "make_jept_pre_post_processors"]

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from lerobot_jept.configuration_jept import JEPTConfig
 from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_MASK, PROMPT_VIDEO
-from lerobot_jept.prompts import PromptBank, resize_frames
+from lerobot_jept.prompts import PromptBank, resize_frames, subsample_indices
 
 
 @ProcessorStepRegistry.register("jept_action_bins")
@@ -96,7 +96,10 @@ class JeptPromptVideoStep(ProcessorStep):
     def __call__(self, transition):
         observation = dict(transition.get(TransitionKey.OBSERVATION) or {})
         if PROMPT_VIDEO in observation:
+            n = observation[PROMPT_VIDEO].shape[-4]
             observation[PROMPT_VIDEO] = self._as_given(observation[PROMPT_VIDEO])
+            if PROMPT_MASK in observation and n > self.max_frames:
+                observation[PROMPT_MASK] = observation[PROMPT_MASK][:, subsample_indices(n, self.max_frames)]
         else:
             complementary = transition.get(TransitionKey.COMPLEMENTARY_DATA) or {}
             tasks = complementary.get("task")
@@ -129,6 +132,8 @@ class JeptPromptVideoStep(ProcessorStep):
             raise ValueError(
                 f"observation.prompt_video must be (B, N, 3, H, W) floats in [0, 1], got {tuple(video.shape)}."
             )
+        if video.shape[1] > self.max_frames:  # as the bank does: uniformly subsampled
+            video = video[:, subsample_indices(video.shape[1], self.max_frames)]
         b, n = video.shape[:2]
         return resize_frames(video.flatten(0, 1).float(), self.image_size).view(
             b, n, 3, *([self.image_size] * 2)
