@@ -1,0 +1,226 @@
+"""``jept-eval-suite``: the paper's Table 1 for one checkpoint, through LeRobot's own ``eval_main``.
+
+Every demo, video and unseen task recorded in the mix repo's split metadata (``meta/jept_build.json``) is
+evaluated with ``--env.type=jept_metaworld`` under the build's protocol (image size, action repeat, truncation)
+and prompt bank. Writes ``results.json``, ``results.md`` (Table 1's rows: T_demo average, T_vid average, each
+unseen task, seen average, unseen average) and ``results.png``, plus LeRobot's eval_info.json and videos per
+task under ``tasks/<task>/``.
+
+    jept-eval-suite --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_mix \\
+        --n_episodes=50 --output_dir=outputs/suite
+"""
+
+import json
+import logging
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+from tqdm import tqdm
+
+from lerobot_jept.envs.metaworld import (
+    TABLE7_DEMO_TASKS,
+    TABLE7_UNSEEN_TASKS,
+    TABLE7_VIDEO_TASKS,
+)
+
+BUILD_FILE = "meta/jept_build.json"
+PAPER_SPLIT = {"demo": TABLE7_DEMO_TASKS, "video": TABLE7_VIDEO_TASKS, "unseen": TABLE7_UNSEEN_TASKS}
+# Table 1, JEPT column (success %), for the paper's own split.
+PAPER_TABLE1 = {
+    "T_demo": 51.3,
+    "T_vid": 31.7,
+    "handle-press-v3": 28.0,
+    "lever-pull-v3": 10.0,
+    "plate-slide-back-v3": 14.0,
+    "faucet-open-v3": 22.0,
+    "Seen average": 41.5,
+    "Unseen average": 18.5,
+}
+
+
+@dataclass
+class PolicyArg:
+    path: str = ""  # checkpoint folder (.../pretrained_model) or Hub repo id
+    device: str | None = None
+
+
+@dataclass
+class DatasetArg:
+    repo_id: str = ""  # the builder's mix repo, ORG/NAME_mix
+    root: str | None = None
+
+
+@dataclass
+class SuiteConfig:
+    policy: PolicyArg = field(default_factory=PolicyArg)
+    dataset: DatasetArg = field(default_factory=DatasetArg)
+    n_episodes: int = 50  # per task (the paper: 50 = 10 prompt videos x 5 seeds)
+    batch_size: int = 10  # parallel envs per task
+    use_async_envs: bool = False
+    seed: int = 1000
+    output_dir: Path = Path("outputs/suite")
+    prompt_repo_id: str | None = None  # default: the build's prompt bank
+    prompt_root: str | None = None
+
+
+class SuiteError(ValueError):
+    pass
+
+
+def read_build_metadata(repo_id: str, root: str | None) -> tuple[dict, Path]:
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    meta = LeRobotDatasetMetadata(repo_id, root=root)
+    path = Path(meta.root) / BUILD_FILE
+    if not path.is_file():
+        raise SuiteError(
+            f"{repo_id} has no {BUILD_FILE}: the suite needs the task split that jept-build-metaworld records. "
+            "Pass the builder's ORG/NAME_mix repo."
+        )
+    return json.loads(path.read_text()), Path(meta.root)
+
+
+def summarise(split: dict[str, list[str]], success: dict[str, float]) -> dict[str, float]:
+    """Table 1's rows (success %): group averages, every unseen task, seen = mean of the T_demo and T_vid
+    averages (as the paper's numbers are), unseen = mean over unseen tasks."""
+
+    def mean(values):
+        return sum(values) / len(values) if values else float("nan")
+
+    rows = {}
+    if split["demo"]:
+        rows["T_demo"] = mean([success[t] for t in split["demo"]])
+    if split["video"]:
+        rows["T_vid"] = mean([success[t] for t in split["video"]])
+    for task in split["unseen"]:
+        rows[task] = success[task]
+    rows["Seen average"] = mean([rows[g] for g in ("T_demo", "T_vid") if g in rows])
+    rows["Unseen average"] = mean([success[t] for t in split["unseen"]])
+    return rows
+
+
+def markdown(rows: dict[str, float], per_task: dict[str, dict], paper: bool) -> str:
+    header = "| Task | JEPT (this run) |" + (" JEPT (paper) |" if paper else "")
+    lines = [header, "|---|---:|" + ("---:|" if paper else "")]
+    for name, value in rows.items():
+        cell = f"| {name} | {value:.1f} |"
+        lines.append(cell + (f" {PAPER_TABLE1[name]:.1f} |" if paper else ""))
+    lines += ["", "| Task | Split | Success (%) | Episodes |", "|---|---|---:|---:|"]
+    for task, r in per_task.items():
+        lines.append(f"| {task} | {r['split']} | {r['pc_success']:.1f} | {r['n_episodes']} |")
+    return "\n".join(lines) + "\n"
+
+
+def bar_chart(rows: dict[str, float], path: Path, paper: bool) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(rows)
+    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 2, 4))
+    width = 0.4 if paper else 0.6
+    xs = range(len(names))
+    ax.bar([x - (width / 2 if paper else 0) for x in xs], [rows[n] for n in names], width, label="this run")
+    if paper:
+        ax.bar([x + width / 2 for x in xs], [PAPER_TABLE1[n] for n in names], width, label="paper")
+        ax.legend()
+    ax.set_xticks(list(xs), names, rotation=30, ha="right")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title("JEPT on Meta-World (Table 1 layout)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def evaluate_task(cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str, out: Path) -> dict:
+    """One task through LeRobot's ``eval_main`` with the ``jept_metaworld`` env; returns its eval_info."""
+    from lerobot.configs.default import EvalConfig
+    from lerobot.configs.eval import EvalPipelineConfig
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.scripts.lerobot_eval import eval_main
+
+    from lerobot_jept.envs.configs import JeptMetaworldEnvConfig
+
+    policy = PreTrainedConfig.from_pretrained(cfg.policy.path)
+    policy.pretrained_path = Path(cfg.policy.path)
+    if cfg.policy.device:
+        policy.device = cfg.policy.device
+    protocol = build["protocol"]
+    env = JeptMetaworldEnvConfig(
+        task=task,
+        image_size=protocol["image_size"],
+        action_repeat=protocol["action_repeat"],
+        episode_length=protocol["max_episode_steps"],
+        prompt_repo_id=prompt_repo_id,
+        prompt_root=cfg.prompt_root,
+        prompt_max_frames=getattr(policy, "max_prompt_length", 250),
+    )
+    batch = max(1, min(cfg.batch_size, cfg.n_episodes))
+    eval_cfg = EvalPipelineConfig(
+        env=env,
+        eval=EvalConfig(n_episodes=cfg.n_episodes, batch_size=batch, use_async_envs=cfg.use_async_envs),
+        output_dir=out,
+        seed=cfg.seed,
+    )
+    eval_cfg.policy = policy
+    eval_main(eval_cfg)
+    return json.loads((out / "eval_info.json").read_text())
+
+
+def run_suite(cfg: SuiteConfig) -> dict:
+    if not cfg.policy.path or not cfg.dataset.repo_id:
+        raise SuiteError("Pass both --policy.path=CHECKPOINT and --dataset.repo_id=ORG/NAME_mix.")
+    build, _ = read_build_metadata(cfg.dataset.repo_id, cfg.dataset.root)
+    if build.get("protocol", {}).get("simulator") != "metaworld":
+        raise SuiteError(
+            f"{cfg.dataset.repo_id} was not built from Meta-World; the suite runs Meta-World only."
+        )
+    split = build["split"]
+    prompt_repo_id = cfg.prompt_repo_id or build["repos"]["prompts"]
+    tasks = [(t, role) for role in ("demo", "video", "unseen") for t in split[role]]
+    out = Path(cfg.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    per_task = {}
+    for task, role in tqdm(tasks, desc="suite tasks", unit="task"):
+        info = evaluate_task(cfg, task, build, prompt_repo_id, out / "tasks" / task)
+        overall = info["overall"]
+        per_task[task] = {
+            "split": role,
+            "pc_success": float(overall["pc_success"]),
+            "n_episodes": int(overall["n_episodes"]),
+            "eval_info": str(out / "tasks" / task / "eval_info.json"),
+        }
+    rows = summarise(split, {t: r["pc_success"] for t, r in per_task.items()})
+    paper = {k: sorted(v) for k, v in split.items()} == {k: sorted(v) for k, v in PAPER_SPLIT.items()}
+    results = {
+        "policy": cfg.policy.path,
+        "dataset": cfg.dataset.repo_id,
+        "n_episodes": cfg.n_episodes,
+        "seed": cfg.seed,
+        "split": split,
+        "per_task": per_task,
+        "table": rows,
+        "paper_table": PAPER_TABLE1 if paper else None,
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    table = markdown(rows, per_task, paper)
+    (out / "results.md").write_text(table)
+    bar_chart(rows, out / "results.png", paper)
+    print(table)
+    print(f"Wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'results.png'}")
+    return results
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING)
+    import lerobot_jept  # noqa: F401  (registers the policy and the env)
+
+    cfg = draccus.parse(SuiteConfig)
+    try:
+        run_suite(cfg)
+    except SuiteError as err:
+        sys.exit(f"jept-eval-suite: {err}")
