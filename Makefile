@@ -15,7 +15,7 @@ export UV_PYTHON_DOWNLOADS := never
 .PHONY: help setup system-deps demo test test-fast lint bench clean
 
 help:
-	@echo "make demo   set up, build a tiny Meta-World mixture (and, once available, train + evaluate JEPT)"
+	@echo "make demo   set up, build a tiny Meta-World mixture, train jept with lerobot-train, run the eval suite"
 	@echo "make test   set up, lint, run every test (slow ones included)"
 	@echo "make bench  set up, print the benchmark figures (name: value)"
 

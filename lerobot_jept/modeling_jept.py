@@ -318,6 +318,8 @@ class JEPTPolicy(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """(B, action_dim) bin-centre actions for the current observation."""
         cfg, m = self.config, self.model
+        if not self._prompt_cached:
+            self._check_inputs(batch)
         obs = self._context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
         if not self._prompt_cached:
             self._prompt_cache = self._prompt(batch) if self.prompt_active else None
@@ -331,6 +333,27 @@ class JEPTPolicy(PreTrainedPolicy):
         pred_h, _ = m.predict(self._prompt_cache, obs, torch.cat([h_past, placeholder], 1))
         _, logits = m.predict(self._prompt_cache, obs, torch.cat([h_past, pred_h[:, -1:]], 1))
         return self.bin_centres[logits[:, -1].argmax(-1)]
+
+    def _check_inputs(self, batch: dict[str, Tensor]) -> None:
+        """Observations from another env (e.g. the stock ``metaworld`` one) fail here with what differs."""
+        cfg = self.config
+        hint = (
+            "This checkpoint was trained on JEPT Meta-World data: evaluate it with --env.type=jept_metaworld "
+            "(the builder's observations), or give it observations of the shapes it was trained on."
+        )
+        for key in (cfg.image_key, OBS_STATE):
+            if key not in batch:
+                raise ValueError(f"The policy needs {key!r} but the observation has {sorted(batch)}. {hint}")
+        expected, got = cfg.input_features[OBS_STATE].shape, tuple(batch[OBS_STATE].shape[1:])
+        if tuple(expected) != got:
+            raise ValueError(
+                f"The env gives observation.state of shape {got} but the policy was trained on {tuple(expected)} "
+                f"(the 18-D Sawyer self-state: joint angles, joint velocities, hand position, gripper). {hint}"
+            )
+        if batch[cfg.image_key].shape[1] != 3:
+            raise ValueError(
+                f"{cfg.image_key} must be (B, 3, H, W), got {tuple(batch[cfg.image_key].shape)}."
+            )
 
     def _context_tokens(self, image: Tensor, state: Tensor) -> Tensor:
         """Observation tokens of the last k frames (B, k, N, D); the first frame fills the context at the start

@@ -1,16 +1,26 @@
 """`make demo`: the main job end to end on a small embedded default.
 
 Runs the real command-line entry points one after the other and prints each command first, so every step
-can be re-run by hand. Step 1 builds a tiny Meta-World mixture (2 demo tasks, 1 video-only task, 1 unseen
-task) into $HF_LEROBOT_HOME.
+can be re-run by hand:
+1. `jept-build-metaworld`: a tiny Meta-World mixture (2 demo tasks, 1 video-only task, 1 unseen task, 96 px)
+   into $HF_LEROBOT_HOME;
+2. `lerobot-train --policy.type=jept` (through examples/configs/train_jept_small_cpu.json) on the mix repo;
+3. `jept-eval-suite`: LeRobot's eval on every task of the split, printed in the paper's Table 1 layout.
+Sizes come from the environment: JEPT_DEMO_STEPS (training steps), JEPT_DEMO_EPISODES (per task).
 """
 
+import os
+
 import shlex
+import shutil
 import subprocess
 import sys
 import time
 
 REPO_ID = "local/jept_demo"
+OUTPUT = "outputs/demo"
+STEPS = int(os.environ.get("JEPT_DEMO_STEPS", 1500))
+EPISODES = int(os.environ.get("JEPT_DEMO_EPISODES", 10))
 BUILD = [
     "jept-build-metaworld",
     f"--repo_id={REPO_ID}",
@@ -36,6 +46,29 @@ def main() -> None:
     bin_dir = f"{sys.prefix}/bin/"
     run([bin_dir + BUILD[0], *BUILD[1:]])
     print(f"\nDatasets ready: {REPO_ID}_demo, _video, _prompts, _mix (under $HF_LEROBOT_HOME).")
+    train_dir = f"{OUTPUT}/train"
+    shutil.rmtree(train_dir, ignore_errors=True)  # lerobot-train refuses an existing output dir
+    run(
+        [
+            bin_dir + "lerobot-train",
+            "--config_path=examples/configs/train_jept_small_cpu.json",
+            f"--dataset.repo_id={REPO_ID}_mix",
+            f"--policy.prompt_repo_id={REPO_ID}_prompts",
+            f"--steps={STEPS}",
+            f"--save_freq={STEPS}",
+            f"--output_dir={train_dir}",
+        ]
+    )
+    run(
+        [
+            bin_dir + "jept-eval-suite",
+            f"--policy.path={train_dir}/checkpoints/last/pretrained_model",
+            f"--dataset.repo_id={REPO_ID}_mix",
+            f"--n_episodes={EPISODES}",
+            f"--batch_size={EPISODES}",
+            f"--output_dir={OUTPUT}/suite",
+        ]
+    )
 
 
 if __name__ == "__main__":

@@ -1,0 +1,206 @@
+"""End to end with LeRobot's own entry points: lerobot-train, lerobot-eval and jept-eval-suite as subprocesses,
+and the jept_metaworld env against the builder's data."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lerobot.configs.types import FeatureType
+from lerobot.envs.factory import make_env
+from lerobot.envs.utils import env_to_policy_features, preprocess_observation
+from lerobot.utils.feature_utils import dataset_to_policy_features
+
+from lerobot_jept.envs.configs import JeptMetaworldEnvConfig
+from lerobot_jept.envs.metaworld import JeptMetaworldEnv
+from tests.conftest import load
+
+BIN = Path(sys.executable).parent
+MIX, PROMPTS = "test/mw_tiny_mix", "test/mw_tiny_prompts"
+CONFIG = Path(__file__).parents[2] / "examples/configs/train_jept_small_cpu.json"
+TINY_TRAIN = ["--batch_size=4", "--num_workers=0", "--policy.max_prompt_length=4", "--log_freq=2"]
+
+
+def run(args: list[str], cwd: Path) -> str:
+    proc = subprocess.run(
+        [str(BIN / args[0]), *args[1:]], cwd=cwd, capture_output=True, text=True, env=os.environ.copy()
+    )
+    assert proc.returncode == 0, f"{args[0]} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    return proc.stdout + proc.stderr
+
+
+def train(tmp: Path, repo: str, steps: int, *extra: str) -> tuple[Path, str]:
+    out = tmp / f"train_{repo.split('/')[-1]}"
+    log = run(
+        [
+            "lerobot-train",
+            f"--config_path={CONFIG}",
+            f"--dataset.repo_id={repo}",
+            f"--policy.prompt_repo_id={PROMPTS}",
+            f"--steps={steps}",
+            f"--save_freq={steps}",
+            f"--output_dir={out}",
+            *TINY_TRAIN,
+            *extra,
+        ],
+        tmp,
+    )
+    return out, log
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_build, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("e2e")
+    out, log = train(tmp, MIX, 4, "--policy.prompt_warmup_steps=2", "--policy.phase_steps=2")
+    return tmp, out, log
+
+
+@pytest.mark.slow
+def test_lerobot_train_logs_both_losses_and_checkpoints(trained):
+    _, out, log = trained
+    assert "loss_obs:" in log and "loss_act:" in log and "labelled_fraction:" in log
+    model = out / "checkpoints/last/pretrained_model"
+    for name in ("config.json", "model.safetensors", "train_config.json", "policy_preprocessor.json"):
+        assert (model / name).is_file(), name
+    assert json.loads((model / "config.json").read_text())["type"] == "jept"
+
+
+@pytest.mark.slow
+def test_training_resumes(trained):
+    tmp, out, _ = trained
+    log = run(
+        [
+            "lerobot-train",
+            f"--config_path={out}/checkpoints/last/pretrained_model/train_config.json",
+            "--resume=true",
+            "--steps=6",
+        ],
+        tmp,
+    )
+    assert "Resum" in log or "resum" in log
+    assert (out / "checkpoints/000006/pretrained_model/model.safetensors").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("repo, labelled", [("test/mw_tiny_demo", True), ("test/mw_tiny_video", False)])
+def test_trains_on_demos_alone_and_on_videos_alone(tiny_build, tmp_path, repo, labelled):
+    extra = [] if labelled else ["--policy.action_dim=4"]
+    _, log = train(tmp_path, repo, 2, "--log_freq=1", *extra)
+    fractions = {float(part.split(":")[1]) for part in log.split() if part.startswith("labelled_fraction:")}
+    assert fractions and (min(fractions) > 0.5 if labelled else fractions == {0.0})
+
+
+@pytest.mark.slow
+def test_lerobot_eval_reports_success_and_writes_videos(trained):
+    tmp, out, _ = trained
+    eval_dir = tmp / "eval"
+    run(
+        [
+            "lerobot-eval",
+            f"--policy.path={out}/checkpoints/last/pretrained_model",
+            "--env.type=jept_metaworld",
+            "--env.task=handle-press-v3",
+            "--env.image_size=64",
+            "--env.episode_length=20",
+            f"--env.prompt_repo_id={PROMPTS}",
+            "--env.prompt_max_frames=4",
+            "--eval.n_episodes=2",
+            "--eval.batch_size=2",
+            "--policy.device=cpu",
+            f"--output_dir={eval_dir}",
+        ],
+        tmp,
+    )
+    info = json.loads((eval_dir / "eval_info.json").read_text())
+    assert info["overall"]["n_episodes"] == 2
+    assert 0.0 <= info["overall"]["pc_success"] <= 100.0
+    assert len(list((eval_dir / "videos").rglob("*.mp4"))) == 2
+
+
+@pytest.mark.slow
+def test_eval_suite_writes_table_and_chart(trained):
+    tmp, out, _ = trained
+    suite = tmp / "suite"
+    log = run(
+        [
+            "jept-eval-suite",
+            f"--policy.path={out}/checkpoints/last/pretrained_model",
+            f"--dataset.repo_id={MIX}",
+            "--n_episodes=1",
+            "--batch_size=1",
+            f"--output_dir={suite}",
+        ],
+        tmp,
+    )
+    results = json.loads((suite / "results.json").read_text())
+    assert set(results["per_task"]) == {"button-press-v3", "reach-v3", "drawer-close-v3", "handle-press-v3"}
+    assert list(results["table"]) == ["T_demo", "T_vid", "handle-press-v3", "Seen average", "Unseen average"]
+    assert all(0 <= v <= 100 for v in results["table"].values())
+    assert (suite / "results.png").stat().st_size > 1000
+    assert "| T_demo |" in (suite / "results.md").read_text() and "| T_demo |" in log
+
+
+def test_env_features_match_the_dataset(tiny_build):
+    env_cfg = JeptMetaworldEnvConfig(task="handle-press-v3", image_size=64)
+    env_features = env_to_policy_features(env_cfg)
+    ds_features = dataset_to_policy_features(load(MIX).meta.features)
+    assert env_features == ds_features
+    assert {k for k, f in env_features.items() if f.type is FeatureType.VISUAL} == {"observation.image"}
+
+
+def test_env_observation_matches_a_builder_frame(tiny_build):
+    """A reset of the lerobot-eval env, through LeRobot's observation conversion, against the recorded frame
+    of the same seed: keys, shapes, dtypes, value ranges, orientation."""
+    home = Path(os.environ["HF_LEROBOT_HOME"])
+    shard = json.loads((home / "test/mw_tiny.build/shards/demo/button-press-v3/0000/shard.json").read_text())
+    env_cfg = JeptMetaworldEnvConfig(task="button-press-v3", image_size=64, prompt_repo_id=PROMPTS)
+    vec = make_env(env_cfg, n_envs=1)["button-press-v3"][0]
+    raw, _ = vec.reset(seed=[shard["seeds"][0]])
+    vec.close()
+    obs = preprocess_observation(raw)
+    frame = load("test/mw_tiny_demo")[0]
+    for key in ("observation.image", "observation.state"):
+        assert obs[key].shape[1:] == frame[key].shape and obs[key].dtype == frame[key].dtype == torch.float32
+    image, recorded = obs["observation.image"][0], frame["observation.image"]
+    assert image.min() >= 0 and image.max() <= 1
+    err = (image - recorded).abs().mean()
+    assert err < 0.06 and (image.flip(1, 2) - recorded).abs().mean() > 3 * err  # same picture, upright
+    torch.testing.assert_close(obs["observation.state"][0], frame["observation.state"])
+    assert obs["observation.prompt_video"].shape == (1, 250, 64, 64, 3)
+
+
+def test_prompt_choice_is_deterministic_per_seed(tiny_build):
+    env = JeptMetaworldEnv("handle-press-v3", image_size=64, prompt_repo_id=PROMPTS, prompt_max_frames=4)
+    chosen = {}
+    for seed in (0, 1, 2, 3, 0, 1):
+        obs, _ = env.reset(seed=seed)
+        chosen.setdefault(seed, []).append((env.prompt_episode, obs["prompt_video"].copy()))
+    env.close()
+    for picks in chosen.values():
+        assert all(p[0] == picks[0][0] for p in picks)
+        assert all(np.array_equal(p[1], picks[0][1]) for p in picks)
+    assert {picks[0][0] for picks in chosen.values()} == set(env._prompt_episodes)  # both prompts in use
+    assert chosen[0][0][0] == chosen[2][0][0] != chosen[1][0][0]  # prompt = seed % num_prompts
+
+
+def test_stock_metaworld_env_gets_a_clear_message(trained):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.envs.configs import MetaworldEnv
+
+    from lerobot_jept import JEPTPolicy
+
+    _, out, _ = trained
+    path = out / "checkpoints/last/pretrained_model"
+    policy = JEPTPolicy.from_pretrained(path, config=PreTrainedConfig.from_pretrained(path))
+    stock = env_to_policy_features(MetaworldEnv(task="handle-press-v3"))
+    batch = {
+        "observation.image": torch.rand(1, 3, 480, 480),
+        "observation.state": torch.zeros(1, stock["observation.state"].shape[0]),
+        "observation.prompt_video": torch.rand(1, 2, 3, 64, 64),
+    }
+    with pytest.raises(ValueError, match=r"observation.state.*18.*jept_metaworld"):
+        policy.select_action(batch)
