@@ -162,8 +162,11 @@ class JEPT(nn.Module):
         return rearrange(obs, "(b t) n d -> b t n d", b=b)
 
     def encode_prompt(self, video: Tensor, mask: Tensor | None) -> Tensor:
-        """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D)."""
-        return self.prompt_encoder(self.backbone_tokens(video), mask)
+        """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D). Only the Perceivers learn from prompts
+        (Appendix A.2): the backbone sees them without gradient, even when it is trained on observations."""
+        with torch.no_grad():
+            tokens = self.backbone_tokens(video)
+        return self.prompt_encoder(tokens, mask)
 
     def predict(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
         """Predicted joint embeddings (B, k, N, J) from the obs tokens and action logits (B, k, A, bins)."""
@@ -235,10 +238,10 @@ class JEPTPolicy(PreTrainedPolicy):
         k = cfg.n_obs_steps
         tokens = m.backbone_tokens(images)
         obs = m.tokenize(m.encoder, tokens, state)
-        h_in = m.encoder.temporal.context_embeddings(obs)[:, 1:]
+        h_in = m.encoder.temporal.context_embeddings(obs, first=1)
         with torch.no_grad():
             target_obs = m.tokenize(m.target_encoder, tokens.detach(), state)
-            targets = m.target_encoder.temporal.context_embeddings(target_obs)[:, 1:]
+            targets = m.target_encoder.temporal.context_embeddings(target_obs, first=1)
         prompt = self._prompt(batch) if self.prompt_active else None
         pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
 
@@ -324,15 +327,16 @@ class JEPTPolicy(PreTrainedPolicy):
         if not self._prompt_cached:
             self._prompt_cache = self._prompt(batch) if self.prompt_active else None
             self._prompt_cached = True
-        h_past = m.encoder.temporal.context_embeddings(obs)[:, 1:]  # h_{t-k+2} .. h_t
-        placeholder = (
-            torch.zeros_like(h_past[:, :1])
-            if h_past.shape[1]
-            else obs.new_zeros(obs.shape[0], 1, obs.shape[2], cfg.joint_embedding_dim)
-        )
-        pred_h, _ = m.predict(self._prompt_cache, obs, torch.cat([h_past, placeholder], 1))
-        _, logits = m.predict(self._prompt_cache, obs, torch.cat([h_past, pred_h[:, -1:]], 1))
-        return self.bin_centres[logits[:, -1].argmax(-1)]
+        h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
+        if cfg.cache_frame_tokens:
+            z_next = m.predictor.forward_last_step(self._prompt_cache, obs, h_past, m.obs_head)
+            logits = m.action_head(z_next[:, None])[:, 0]
+        else:  # the reference: two full passes, h_{t+1} predicted by the first and fed back into the second
+            placeholder = torch.zeros_like(obs[:, :1, :, : cfg.joint_embedding_dim])
+            pred_h, _ = m.predict(self._prompt_cache, obs, torch.cat([h_past, placeholder], 1))
+            _, logits = m.predict(self._prompt_cache, obs, torch.cat([h_past, pred_h[:, -1:]], 1))
+            logits = logits[:, -1]
+        return self.bin_centres[logits.argmax(-1)]
 
     def _check_inputs(self, batch: dict[str, Tensor]) -> None:
         """Observations from another env (e.g. the stock ``metaworld`` one) fail here with what differs."""

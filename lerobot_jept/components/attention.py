@@ -52,6 +52,25 @@ class SelfAttentionStack(nn.Module):
     ) -> Tensor:
         return self.norm(self.layers(x, mask=mask, src_key_padding_mask=key_padding_mask))
 
+    def forward_with_states(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, list[Tensor]]:
+        """As ``forward``, also returning every layer's input, for :meth:`extend`."""
+        states = []
+        for layer in self.layers.layers:
+            states.append(x)
+            x = layer(x, src_mask=mask)
+        return self.norm(x), states
+
+    def extend(self, states: list[Tensor], x: Tensor) -> Tensor:
+        """Outputs of new tokens ``x`` (B, M, D) appended after the tokens whose layer inputs are ``states``;
+        they attend to all of those and to each other (a last group under a block-causal mask), and nothing
+        already computed changes: the old tokens never attend to later ones."""
+        for layer, prev in zip(self.layers.layers, states, strict=True):
+            q = layer.norm1(x)
+            kv = torch.cat([layer.norm1(prev), q], dim=1)
+            x = x + layer.dropout1(layer.self_attn(q, kv, kv, need_weights=False)[0])
+            x = x + layer._ff_block(layer.norm2(x))
+        return self.norm(x)
+
 
 def sinusoidal_positions(length: int, dim: int) -> Tensor:
     """(length, dim) fixed sinusoidal position table."""

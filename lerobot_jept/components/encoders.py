@@ -64,16 +64,17 @@ class JointEmbeddingEncoder(nn.Module):
         x = self.temporal(rearrange(x, "b t n d -> b (t n) d"), key_padding_mask=key_padding)
         return rearrange(self.out(x), "b (t n) d -> b t n d", t=t, n=n)
 
-    def context_embeddings(self, obs_tokens: Tensor) -> Tensor:
-        """(B, T, N, D_in) -> (B, T, N, joint_dim): frame j encoded bi-directionally over frames 0..j only.
-
-        One batched pass over T copies of the window, copy j padding out the frames after j.
+    def context_embeddings(self, obs_tokens: Tensor, first: int = 0) -> Tensor:
+        """(B, T, N, D_in) -> (B, T - first, N, joint_dim): frame j (j >= ``first``) encoded bi-directionally
+        over frames 0..j only. One batched pass over the windows, window j padding out the frames after j.
         """
         b, t = obs_tokens.shape[:2]
         steps = torch.arange(t, device=obs_tokens.device)
-        padding = (steps[None, :] > steps[:, None]).repeat(b, 1)  # (B*T, T): copy j hides frames > j
-        h = self.forward(obs_tokens.repeat_interleave(t, dim=0), padding)  # (B*T, T, N, J)
-        return rearrange(h, "(b j) t n d -> b j t n d", b=b)[:, steps, steps]
+        ends = steps[first:]
+        padding = (steps[None, :] > ends[:, None]).repeat(b, 1)  # (B * windows, T)
+        h = self.forward(obs_tokens.repeat_interleave(len(ends), dim=0), padding)  # (B * windows, T, N, J)
+        h = rearrange(h, "(b w) t n d -> b w t n d", b=b)
+        return h[:, torch.arange(len(ends)), ends]
 
 
 class PromptVideoEncoder(nn.Module):

@@ -36,21 +36,40 @@ class CausalPredictor(nn.Module):
         self.positions = StepPositions(max_steps, tokens_per_step, width)
         self.transformer = SelfAttentionStack(width, heads, ff_dim, layers, dropout)
 
-    def forward(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
+    def _sequence(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, list]:
+        """Input tokens and groups; ``emb`` may lack the last step (k - 1 embeddings): its group is left out."""
         b, k, n, _ = obs.shape
         step = self.positions(k)
         o = self.obs_in(obs) + step + self.type_embed[1]
-        h = self.emb_in(emb) + step + self.type_embed[2]
+        h = self.emb_in(emb) + step[: emb.shape[1]] + self.type_embed[2]
+        missing = k - emb.shape[1]
+        if missing:
+            h = torch.cat([h, torch.zeros_like(o[:, -missing:])], dim=1)
         seq = rearrange(torch.stack([o, h], dim=2), "b k g n d -> b (k g n) d")
-        num_prompt = 0
+        groups = jept_groups(0, k, n)
+        if missing:
+            seq, groups = seq[:, :-n], groups[:-1]
         if prompt is not None:
-            num_prompt = prompt.shape[1]
             seq = torch.cat([self.prompt_in(prompt) + self.type_embed[0], seq], dim=1)
-        groups = jept_groups(num_prompt, k, n)
+            groups = jept_groups(prompt.shape[1], 0, n) + groups
+        return seq, groups
+
+    def forward(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
+        seq, groups = self._sequence(prompt, obs, emb)
         z = self.transformer(seq, mask=attention_mask(groups).to(seq.device))
         z_obs = torch.stack([z[:, s] for s in group_slices(groups, "obs")], dim=1)
         z_emb = torch.stack([z[:, s] for s in group_slices(groups, "emb")], dim=1)
         return z_obs, z_emb
+
+    def forward_last_step(self, prompt: Tensor | None, obs: Tensor, emb_past: Tensor, predict_emb) -> Tensor:
+        """Control: hidden states (B, N, width) of the h_{t+1} tokens, h_{t+1} = ``predict_emb`` of the o_t
+        hidden states. One pass over the sequence up to o_t, then the h_{t+1} group alone on its cached layer
+        inputs (the earlier tokens never attend to it), instead of two full passes."""
+        k, n = obs.shape[1], obs.shape[2]
+        seq, groups = self._sequence(prompt, obs, emb_past)
+        z, states = self.transformer.forward_with_states(seq, mask=attention_mask(groups).to(seq.device))
+        h_next = self.emb_in(predict_emb(z[:, -n:])) + self.positions(k)[-1] + self.type_embed[2]
+        return self.transformer.extend(states, h_next)
 
 
 class ObservationHead(nn.Module):

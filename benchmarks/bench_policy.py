@@ -1,0 +1,143 @@
+"""Policy speed, each figure a ratio against a baseline measured in the same run.
+
+- ``select_action_cached_speedup``: step time of ``select_action`` recomputing every context frame (backbone +
+  Perceiver on all k frames) / step time with the per-frame token cache; the paper's architecture
+  (vit_base_patch16_224 at 224 px, k = 8) with random weights, batch 1, same context. Goal >= 5.
+- ``train_step_vs_act``: one training step (forward, backward, AdamW) of the small jept configuration / one of
+  LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
+  size. Goal <= 2.
+"""
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_LEROBOT_HOME", tempfile.mkdtemp(prefix="jept_bench_home_"))
+
+import torch  # noqa: E402
+from lerobot.configs.types import FeatureType, PolicyFeature  # noqa: E402
+
+from lerobot_jept import JEPTConfig, JEPTPolicy  # noqa: E402
+from lerobot_jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
+
+
+def median_time(fn, repeats: int, warmup: int = 2) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def select_action_speedup(repeats: int) -> tuple[float, float]:
+    features = {
+        "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 224, 224)),
+        "observation.state": PolicyFeature(FeatureType.STATE, (18,)),
+    }
+    times = {}
+    torch.manual_seed(0)
+    for cached in (False, True):
+        cfg = JEPTConfig(
+            device="cpu",
+            pretrained_backbone=False,
+            cache_frame_tokens=cached,
+            prompt_warmup_steps=0,
+            input_features=features,
+            output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
+        )
+        policy = JEPTPolicy(cfg).eval()
+        obs = {
+            "observation.image": torch.rand(1, 3, 224, 224),
+            "observation.state": torch.randn(1, 18),
+            PROMPT_VIDEO: torch.rand(1, 8, 3, 224, 224),
+        }
+        policy.reset()
+        for _ in range(cfg.n_obs_steps):  # a full context, prompt encoded: the steady state of an episode
+            policy.select_action(obs)
+        times[cached] = median_time(lambda p=policy, o=obs: p.select_action(o), repeats, warmup=1)
+    return times[False] / times[True], times[True]
+
+
+def tiny_build() -> str:
+    from dataset_builders.core import build
+    from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator
+
+    cfg = MetaworldBuildConfig(
+        repo_id="bench/policy",
+        demo_tasks=["button-press-v3", "reach-v3"],
+        video_tasks=[],
+        unseen_tasks=[],
+        episodes_per_task=4,
+        prompts_per_task=2,
+        image_size=96,
+        num_workers=1,
+    )
+    build(cfg, MetaworldSimulator())
+    return "bench/policy"
+
+
+def train_step_time(cfg, repo: str, batch_size: int, repeats: int) -> float:
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    meta = LeRobotDatasetMetadata(f"{repo}_demo")
+    torch.manual_seed(0)
+    policy = make_policy(cfg, ds_meta=meta)
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    ds = LeRobotDataset(f"{repo}_demo", delta_timestamps=resolve_delta_timestamps(cfg, meta))
+    loader = iter(torch.utils.data.DataLoader(ds, batch_size=batch_size, shuffle=True, drop_last=True))
+    batches = [pre(next(loader)) for _ in range(3)]
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-4)
+    policy.train()
+    state = {"i": 0}
+
+    def step():
+        batch = batches[state["i"] % len(batches)]
+        state["i"] += 1
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad()
+        if hasattr(policy, "update"):
+            policy.update()
+
+    return median_time(step, repeats)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--batch_size", type=int, default=8)
+    args = parser.parse_args()
+    torch.set_num_threads(os.cpu_count() or 1)
+
+    speedup, cached_s = select_action_speedup(args.repeats)
+    print(f"select_action_cached_s: {cached_s:.3f}")
+    print(f"select_action_cached_speedup: {speedup:.2f}")
+
+    from lerobot.policies.act.configuration_act import ACTConfig
+
+    repo = tiny_build()
+    jept = JEPTConfig.small(
+        device="cpu", prompt_repo_id=f"{repo}_prompts", prompt_warmup_steps=0, phase_schedule="joint"
+    )
+    act = ACTConfig(device="cpu", pretrained_backbone_weights=None)
+    jept_s = train_step_time(jept, repo, args.batch_size, args.repeats)
+    act_s = train_step_time(act, repo, args.batch_size, args.repeats)
+    print(f"train_step_jept_small_s: {jept_s:.3f}")
+    print(f"train_step_act_s: {act_s:.3f}")
+    print(f"train_step_vs_act: {jept_s / act_s:.2f}")
+
+
+if __name__ == "__main__":
+    main()
