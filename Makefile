@@ -52,7 +52,8 @@ test-fast: lint
 	$(RUN) -m pytest tests -m "not slow"
 
 bench: setup
-	@$(RUN) benchmarks/bench_builder.py
+	@$(RUN) -m benchmarks.bench_builder
+	@$(RUN) -m benchmarks.bench_policy
 
 clean:
 	rm -rf $(VENV) outputs
