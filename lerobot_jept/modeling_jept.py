@@ -40,30 +40,31 @@ class JointEmbeddingTarget(nn.Module):
         self.tokenizer = ObservationTokenizer(
             backbone_dim,
             state_dim,
-            perceiver=dict(
-                num_latents=config.frame_perceiver_latents,
-                num_queries=config.frame_perceiver_queries,
-                ff_dim=config.frame_perceiver_ff_dim,
-                dropout=config.frame_perceiver_dropout,
-                **_perceiver_structure(config),
-            ),
+            perceiver=_perceiver_kwargs(config, "frame"),
             dim=config.perceiver_dim,
         )
         self.temporal = JointEmbeddingEncoder(
             config.perceiver_dim,
             config.temporal_dim,
             config.joint_embedding_dim,
-            heads=config.temporal_heads,
-            ff_dim=config.temporal_ff_dim,
-            layers=config.temporal_layers,
-            dropout=config.temporal_dropout,
+            **_transformer_kwargs(config, "temporal"),
             max_steps=config.n_obs_steps + 1,
             tokens_per_step=config.frame_perceiver_queries + 1,
         )
 
 
-def _perceiver_structure(config: JEPTConfig) -> dict:
+def _transformer_kwargs(config: JEPTConfig, which: str) -> dict:
+    """Self-attention stack sizes of the ``temporal`` encoder or the causal ``predictor`` (Table 5)."""
+    return {name: getattr(config, f"{which}_{name}") for name in ("heads", "ff_dim", "layers", "dropout")}
+
+
+def _perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
+    """Perceiver-IO arguments: the shared structure plus the ``frame_`` or ``prompt_`` sizes of Table 5."""
     return dict(
+        num_latents=getattr(config, f"{which}_perceiver_latents"),
+        num_queries=getattr(config, f"{which}_perceiver_queries"),
+        ff_dim=getattr(config, f"{which}_perceiver_ff_dim"),
+        dropout=getattr(config, f"{which}_perceiver_dropout"),
         heads=config.perceiver_heads,
         encoder_cross_layers=config.perceiver_encoder_cross_layers,
         encoder_self_layers=config.perceiver_encoder_self_layers,
@@ -89,20 +90,8 @@ class JEPT(nn.Module):
         self.target_encoder = copy.deepcopy(self.encoder).requires_grad_(False)
         self.prompt_encoder = PromptVideoEncoder(
             self.backbone.dim,
-            frame_perceiver=dict(
-                num_latents=config.frame_perceiver_latents,
-                num_queries=config.frame_perceiver_queries,
-                ff_dim=config.frame_perceiver_ff_dim,
-                dropout=config.frame_perceiver_dropout,
-                **_perceiver_structure(config),
-            ),
-            video_perceiver=dict(
-                num_latents=config.prompt_perceiver_latents,
-                num_queries=config.prompt_perceiver_queries,
-                ff_dim=config.prompt_perceiver_ff_dim,
-                dropout=config.prompt_perceiver_dropout,
-                **_perceiver_structure(config),
-            ),
+            frame_perceiver=_perceiver_kwargs(config, "frame"),
+            video_perceiver=_perceiver_kwargs(config, "prompt"),
             dim=config.perceiver_dim,
             max_frames=config.max_prompt_length,
         )
@@ -111,10 +100,7 @@ class JEPT(nn.Module):
             config.perceiver_dim,
             config.joint_embedding_dim,
             config.predictor_dim,
-            heads=config.predictor_heads,
-            ff_dim=config.predictor_ff_dim,
-            layers=config.predictor_layers,
-            dropout=config.predictor_dropout,
+            **_transformer_kwargs(config, "predictor"),
             max_steps=config.n_obs_steps,
             tokens_per_step=tokens_per_step,
         )

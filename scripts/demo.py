@@ -19,7 +19,7 @@ import time
 
 REPO_ID = "local/jept_demo"
 OUTPUT = "outputs/demo"
-STEPS = int(os.environ.get("JEPT_DEMO_STEPS", 1500))
+STEPS = int(os.environ.get("JEPT_DEMO_STEPS", 800))
 EPISODES = int(os.environ.get("JEPT_DEMO_EPISODES", 10))
 BUILD = [
     "jept-build-metaworld",

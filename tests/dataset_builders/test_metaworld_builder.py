@@ -248,3 +248,23 @@ def test_killed_build_resumes_without_loss_or_duplicates(tmp_path):
         assert sorted(set(int(e) for e in episode_index)) == list(range(n))
     assert not list((tmp_path / "killed").rglob("*.tmp"))
     shutil.rmtree(tmp_path)
+
+
+@pytest.mark.parametrize("role", ["demo", "video"])
+def test_lerobot_dataset_viz_saves_a_recording(tiny_build, tmp_path, role):
+    """LeRobot's own viewer reads the repos, with and without an `action` feature."""
+    proc = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "lerobot-dataset-viz"),
+            f"--repo-id=test/mw_tiny_{role}",
+            "--episode-index=0",
+            "--save=1",
+            f"--output-dir={tmp_path}",
+            "--num-workers=0",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    recordings = list(tmp_path.glob("*.rrd"))
+    assert len(recordings) == 1 and recordings[0].stat().st_size > 10_000
