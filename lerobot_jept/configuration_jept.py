@@ -20,6 +20,30 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 PHASE_SCHEDULES = ("alternate", "joint")
 
 
+def installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("lerobot_policy_jept")
+    except PackageNotFoundError:  # running from a source tree that is not installed
+        return "0.0.0"
+
+
+def check_plugin_version(saved: str, installed: str) -> None:
+    """Checkpoints are compatible within one minor series (0.x) or major version (>= 1)."""
+
+    def series(v: str) -> tuple[int, ...]:
+        major, minor = (int(p) for p in v.split(".")[:2])
+        return (major, minor) if major == 0 else (major,)
+
+    if series(saved) != series(installed):
+        raise ValueError(
+            f"This checkpoint was saved by lerobot_policy_jept {saved}, but {installed} is installed, and the "
+            f"two are not compatible: install the matching plugin (pip install 'lerobot_policy_jept=="
+            f"{'.'.join(map(str, series(saved)))}.*') to load it."
+        )
+
+
 @PreTrainedConfig.register_subclass("jept")
 @dataclass
 class JEPTConfig(PreTrainedConfig):
@@ -67,6 +91,8 @@ class JEPTConfig(PreTrainedConfig):
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
             ``ORG/NAME_prompts``) and an optional local root for it.
+        plugin_version: the lerobot_policy_jept version that made the checkpoint; loading it with an
+            incompatible version fails with a message naming the version to install.
         cache_frame_tokens: ``select_action`` reuses per-frame tokens of the previous k - 1 frames (off only
             to check the cache against full recomputation).
     """
@@ -144,9 +170,11 @@ class JEPTConfig(PreTrainedConfig):
     prompt_root: str | None = None
     cache_frame_tokens: bool = True
     drop_n_last_frames: int = 1  # the last frame of an episode has no next observation to predict
+    plugin_version: str = field(default_factory=installed_version)
 
     def __post_init__(self):
         super().__post_init__()
+        check_plugin_version(self.plugin_version, installed_version())
         if self.phase_schedule not in PHASE_SCHEDULES:
             raise ValueError(
                 f"phase_schedule must be one of {PHASE_SCHEDULES}, got {self.phase_schedule!r}: "

@@ -12,7 +12,10 @@ predict a_t.
 """
 
 import copy
+import json
+import logging
 from collections import deque
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F  # noqa: N812
@@ -289,6 +292,29 @@ class JEPTPolicy(PreTrainedPolicy):
         self.model.update_target(self.config.ema_decay)
         self.num_updates += 1
 
+    # Hub -------------------------------------------------------------------------------------------------
+
+    def push_model_to_hub(self, cfg, *args, **kwargs):
+        """LeRobot's push; a failure (no network, bad token) is one logged line, the local checkpoint stays."""
+        try:
+            return super().push_model_to_hub(cfg, *args, **kwargs)
+        except Exception as err:  # whatever the Hub client raises
+            reason = str(err).strip().splitlines()[0] if str(err).strip() else ""
+            logging.error(
+                "Pushing the policy to %s failed (%s: %s). The checkpoints under %s are intact; push one later "
+                "with `huggingface-cli upload %s <output_dir>/checkpoints/last/pretrained_model`.",
+                self.config.repo_id,
+                type(err).__name__,
+                reason,
+                cfg.output_dir,
+                self.config.repo_id,
+            )
+
+    def generate_model_card(self, dataset_repo_id, model_type, license, tags, cfg=None, dataset_meta=None):
+        card = super().generate_model_card(dataset_repo_id, model_type, license, tags, cfg, dataset_meta)
+        card.text += jept_card_section(self.config, dataset_repo_id, dataset_meta)
+        return card
+
     # Control ----------------------------------------------------------------------------------------------
 
     def reset(self) -> None:
@@ -357,3 +383,40 @@ class JEPTPolicy(PreTrainedPolicy):
         images = torch.stack([f[0] for f in self._frames], 1)
         states = torch.stack([f[1] for f in self._frames], 1)
         return m.tokenize(m.encoder, m.backbone_tokens(images), states)
+
+
+def jept_card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) -> str:
+    """Model card text: training data, prompt bank, task split and how to evaluate the checkpoint."""
+    split, protocol = {}, {}
+    if dataset_meta is not None and (Path(dataset_meta.root) / "meta/jept_build.json").is_file():
+        build = json.loads((Path(dataset_meta.root) / "meta/jept_build.json").read_text())
+        split, protocol = build.get("split", {}), build.get("protocol", {})
+    lines = [
+        "",
+        "## JEPT",
+        "",
+        "Joint Embedding Predictive Transformer (`lerobot_policy_jept` "
+        f"{config.plugin_version}): `pip install lerobot_policy_jept`, then LeRobot finds the `jept` policy.",
+        "",
+        f"- Training data: `{dataset_repo_id}`",
+        f"- Prompt bank: `{config.prompt_repo_id}`",
+    ]
+    for name, key in (("T_demo", "demo"), ("T_vid", "video"), ("T_unseen", "unseen")):
+        if key in split:
+            lines.append(f"- {name}: {', '.join(split[key]) or '(none)'}")
+    size = protocol.get("image_size", config.image_size)
+    task = (split.get("unseen") or split.get("demo") or ["button-press-v3"])[0]
+    repo = config.repo_id or "<this repo>"
+    lines += [
+        "",
+        "Evaluate:",
+        "",
+        "```bash",
+        f"lerobot-eval --policy.path={repo} --env.type=jept_metaworld --env.task={task} "
+        f"--env.image_size={size} --env.prompt_repo_id={config.prompt_repo_id} "
+        f"--env.prompt_max_frames={config.max_prompt_length} --eval.n_episodes=50",
+        f"jept-eval-suite --policy.path={repo} --dataset.repo_id={dataset_repo_id} --n_episodes=50",
+        "```",
+        "",
+    ]
+    return "\n".join(lines)
