@@ -29,6 +29,10 @@ def installed_version() -> str:
         return "0.0.0"
 
 
+class PluginVersionError(ValueError):
+    """A checkpoint saved by an incompatible lerobot_policy_jept."""
+
+
 def check_plugin_version(saved: str, installed: str) -> None:
     """Checkpoints are compatible within one minor series (0.x) or major version (>= 1)."""
 
@@ -37,7 +41,7 @@ def check_plugin_version(saved: str, installed: str) -> None:
         return (major, minor) if major == 0 else (major,)
 
     if series(saved) != series(installed):
-        raise ValueError(
+        raise PluginVersionError(
             f"This checkpoint was saved by lerobot_policy_jept {saved}, but {installed} is installed, and the "
             f"two are not compatible: install the matching plugin (pip install 'lerobot_policy_jept=="
             f"{'.'.join(map(str, series(saved)))}.*') to load it."

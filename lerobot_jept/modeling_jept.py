@@ -13,7 +13,6 @@ predict a_t.
 
 import copy
 import json
-import logging
 from collections import deque
 from pathlib import Path
 
@@ -27,7 +26,7 @@ from torch import Tensor, nn
 from lerobot_jept.components.backbone import SpatialBackbone
 from lerobot_jept.components.encoders import JointEmbeddingEncoder, ObservationTokenizer, PromptVideoEncoder
 from lerobot_jept.components.predictor import ActionHead, CausalPredictor, ObservationHead
-from lerobot_jept.configuration_jept import JEPTConfig
+from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
 
 PROMPT_VIDEO = "observation.prompt_video"
@@ -185,6 +184,20 @@ class JEPTPolicy(PreTrainedPolicy):
         self.register_buffer("bin_centres", torch.as_tensor(centres, dtype=torch.float32), persistent=False)
         self.reset()
 
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, *args, **kwargs):
+        """LeRobot's loading (safetensors only), with a version mismatch raised as itself, not as the config
+        parser's wrapper around it."""
+        try:
+            return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
+        except Exception as err:
+            cause = err
+            while cause is not None and not isinstance(cause, PluginVersionError):
+                cause = cause.__cause__
+            if cause is None:
+                raise
+            raise cause from None
+
     # Training ---------------------------------------------------------------------------------------------
 
     def get_optim_params(self) -> list[dict]:
@@ -295,20 +308,17 @@ class JEPTPolicy(PreTrainedPolicy):
     # Hub -------------------------------------------------------------------------------------------------
 
     def push_model_to_hub(self, cfg, *args, **kwargs):
-        """LeRobot's push; a failure (no network, bad token) is one logged line, the local checkpoint stays."""
+        """LeRobot's push. A failure (no network, bad token) ends the run with one line and keeps every local
+        file: lerobot-train saves the checkpoints before it pushes."""
         try:
             return super().push_model_to_hub(cfg, *args, **kwargs)
         except Exception as err:  # whatever the Hub client raises
             reason = str(err).strip().splitlines()[0] if str(err).strip() else ""
-            logging.error(
-                "Pushing the policy to %s failed (%s: %s). The checkpoints under %s are intact; push one later "
-                "with `huggingface-cli upload %s <output_dir>/checkpoints/last/pretrained_model`.",
-                self.config.repo_id,
-                type(err).__name__,
-                reason,
-                cfg.output_dir,
-                self.config.repo_id,
-            )
+            raise SystemExit(
+                f"Pushing the policy to {self.config.repo_id} failed ({type(err).__name__}: {reason}). The "
+                f"checkpoints under {cfg.output_dir} are intact; log in (`hf auth login`) and upload one with "
+                f"`hf upload {self.config.repo_id} {cfg.output_dir}/checkpoints/last/pretrained_model`."
+            ) from err
 
     def generate_model_card(self, dataset_repo_id, model_type, license, tags, cfg=None, dataset_meta=None):
         card = super().generate_model_card(dataset_repo_id, model_type, license, tags, cfg, dataset_meta)

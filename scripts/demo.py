@@ -10,7 +10,6 @@ Sizes come from the environment: JEPT_DEMO_STEPS (training steps), JEPT_DEMO_EPI
 """
 
 import os
-
 import shlex
 import shutil
 import subprocess
