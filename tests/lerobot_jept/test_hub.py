@@ -139,8 +139,25 @@ def test_datasets_policy_and_prompt_bank_load_by_repo_id(hub, tmp_path):
 
 
 @pytest.mark.slow
-def test_lerobot_eval_and_own_loop_from_repo_ids(hub, tmp_path):
+def test_lerobot_train_eval_and_own_loop_from_repo_ids(hub, tmp_path):
     env = hub_env(hub, tmp_path)
+    run(
+        [
+            str(BIN / "lerobot-train"),
+            f"--config_path={ROOT / 'examples/configs/train_jept_small_cpu.json'}",
+            f"--dataset.repo_id={MIX}",
+            f"--policy.prompt_repo_id={PROMPTS}",
+            "--policy.max_prompt_length=4",
+            "--policy.prompt_warmup_steps=0",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            f"--output_dir={tmp_path / 'train'}",
+        ],
+        env,
+        tmp_path,
+    )
+    assert (tmp_path / "train/checkpoints/last/pretrained_model/model.safetensors").is_file()
     run(
         [
             str(BIN / "lerobot-eval"),
