@@ -137,8 +137,9 @@ class Simulator(abc.ABC):
         """The task string written to the datasets; equal to the eval env's ``task_description``."""
 
     @abc.abstractmethod
-    def make_env(self, task: str, cfg: BuildConfig):
-        """A gymnasium env with ``{"pixels", "agent_pos"}`` observations and an ``expert_action()`` method."""
+    def make_env(self, task: str, cfg: BuildConfig, role: str = "demo"):
+        """A gymnasium env with ``{"pixels", "agent_pos"}`` observations and an ``expert_action()`` method.
+        ``role`` is the repo being recorded (``"prompts"`` may show another embodiment than the others)."""
 
     @abc.abstractmethod
     def fps(self, cfg: BuildConfig) -> int:
@@ -252,11 +253,11 @@ class BuildPaths:
 _ENV_CACHE: dict = {}  # one live env per process: (simulator name, task, flags) -> env
 
 
-def _env_for(sim: Simulator, task: str, cfg: BuildConfig):
-    key = (sim.name, task, cfg.image_size, cfg.action_repeat, cfg.max_episode_steps)
+def _env_for(sim: Simulator, task: str, cfg: BuildConfig, role: str):
+    key = (sim.name, task, role, cfg.image_size, cfg.action_repeat, cfg.max_episode_steps)
     if key not in _ENV_CACHE:
         close_envs()
-        _ENV_CACHE[key] = sim.make_env(task, cfg)
+        _ENV_CACHE[key] = sim.make_env(task, cfg, role)
     return _ENV_CACHE[key]
 
 
@@ -313,7 +314,7 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
         streaming_encoding=True,
         rgb_encoder=encoder_config(cfg.vcodec),
     )
-    env = _env_for(sim, shard.task, cfg)
+    env = _env_for(sim, shard.task, cfg, shard.role)
     description = sim.task_description(shard.task)
     kept, attempt, frames_total, seeds = 0, 0, 0, []
     # Writing an episode (stats, parquet, video) overlaps with rendering the next one.

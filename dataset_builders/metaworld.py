@@ -39,7 +39,7 @@ class MetaworldSimulator(Simulator):
     def task_description(self, task: str) -> str:
         return mw.task_description(task)
 
-    def make_env(self, task: str, cfg: BuildConfig) -> mw.JeptMetaworldEnv:
+    def make_env(self, task: str, cfg: BuildConfig, role: str = "demo") -> mw.JeptMetaworldEnv:
         return mw.JeptMetaworldEnv(
             task,
             image_size=cfg.image_size,

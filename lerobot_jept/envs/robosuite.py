@@ -1,0 +1,204 @@
+"""The one definition of a JEPT robosuite observation (paper, Section 4.3 and Appendix B.1).
+
+A Panda arm executes every task; prompt videos show the same manipulation done by Panda, Sawyer, IIWA or UR5e.
+Tasks are named ``<prompt arm>-<manipulation>`` (``sawyer-lift``: Panda lifts, prompted by a Sawyer video).
+:class:`JeptRobosuiteEnv` renders the ``agentview`` camera at ``image_size`` (flipped upright) with the fast
+settings (no MSAA, shadows or reflections) and reports the self-state of the executing arm; ``embodiment="prompt"``
+makes the prompt arm execute instead (to record prompt videos).
+"""
+
+import atexit
+import difflib
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from lerobot_jept.envs.rendering import setup_offscreen_gl
+from lerobot_jept.envs.robosuite_experts import make_expert
+
+ARMS = {"panda": "Panda", "sawyer": "Sawyer", "iiwa": "IIWA", "ur5e": "UR5e"}
+MANIPULATIONS = {"lift": "Lift", "stack": "Stack"}  # robosuite env per manipulation with a scripted expert
+EXECUTING_ARM = "panda"
+ROBOT_TYPE = "panda"
+CAMERA_NAME = "agentview"
+CONTROL_FREQ = 20
+ACTION_DIM = 7
+ACTION_NAMES = ["dx", "dy", "dz", "droll", "dpitch", "dyaw", "gripper"]
+NUM_JOINTS = 7  # Panda; arms with fewer joints (UR5e: 6) are zero-padded in prompt recordings
+STATE_NAMES = (
+    [f"joint_pos_{i}" for i in range(NUM_JOINTS)]
+    + [f"joint_vel_{i}" for i in range(NUM_JOINTS)]
+    + ["eef_x", "eef_y", "eef_z", "eef_qx", "eef_qy", "eef_qz", "eef_qw", "gripper_0", "gripper_1"]
+)
+STATE_DIM = len(STATE_NAMES)
+
+
+def available_tasks() -> list[str]:
+    return [f"{arm}-{m}" for m in MANIPULATIONS for arm in ARMS]
+
+
+def check_task(task: str) -> str:
+    if task not in available_tasks():
+        close = difflib.get_close_matches(task, available_tasks(), n=3)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        raise ValueError(
+            f"Unknown robosuite task {task!r}: tasks are <prompt arm>-<manipulation> with arms "
+            f"{sorted(ARMS)} and manipulations {sorted(MANIPULATIONS)}.{hint}"
+        )
+    return task
+
+
+def split_task(task: str) -> tuple[str, str]:
+    arm, manipulation = check_task(task).split("-", 1)
+    return arm, manipulation
+
+
+def task_description(task: str) -> str:
+    arm, manipulation = split_task(task)
+    return f"{manipulation} (prompted by {ARMS[arm]})"
+
+
+class JeptRobosuiteEnv(gym.Env):
+    """A robosuite task under the JEPT protocol: ``{"pixels", "agent_pos"}`` observations, 7-D OSC_POSE actions.
+
+    Args:
+        task: ``<prompt arm>-<manipulation>``, e.g. ``"sawyer-stack"``.
+        image_size: side of the square ``agentview`` image.
+        max_episode_steps: steps before truncation (the paper: 200).
+        embodiment: ``"panda"`` (the executing arm, for demos, videos and evaluation) or ``"prompt"`` (the
+            task's prompt arm, for recording prompt videos).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQ}
+
+    def __init__(
+        self, task: str, image_size: int = 224, max_episode_steps: int = 200, embodiment: str = "panda"
+    ):
+        super().__init__()
+        self.task = check_task(task)
+        self.prompt_arm, self.manipulation = split_task(task)
+        self.task_description = task_description(task)
+        self.arm = EXECUTING_ARM if embodiment == "panda" else self.prompt_arm
+        self.image_size = image_size
+        self._max_episode_steps = max_episode_steps
+        self.render_mode = "rgb_array"
+        self.observation_space = spaces.Dict(
+            {
+                "pixels": spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+                "agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
+            }
+        )
+        self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+        self._env = None
+        self._raw_obs = None
+        self._expert = None
+        self._steps = 0
+
+    @property
+    def fps(self) -> int:
+        return CONTROL_FREQ
+
+    def _ensure_env(self) -> None:
+        if self._env is not None:
+            return
+        setup_offscreen_gl()
+        import robosuite
+        from robosuite.controllers import load_composite_controller_config
+
+        robot = ARMS[self.arm]
+        self._env = robosuite.make(
+            MANIPULATIONS[self.manipulation],
+            robots=robot,
+            controller_configs=load_composite_controller_config(robot=robot),
+            has_renderer=False,
+            has_offscreen_renderer=True,
+            use_camera_obs=False,
+            control_freq=CONTROL_FREQ,
+            horizon=10_000,  # truncation is ours
+            hard_reset=False,
+            ignore_done=True,
+            seed=0,
+        )
+        self._env.reset()
+        self._fast_render()
+        atexit.register(self.close)
+
+    def _fast_render(self) -> None:
+        """No MSAA, shadows or reflections: several times faster on Mesa's CPU renderer."""
+        import mujoco
+
+        ctx = self._env.sim._render_context_offscreen
+        ctx.gl_ctx.make_current()
+        self._env.sim.model._model.vis.quality.offsamples = 0
+        ctx.con.free()
+        ctx._set_mujoco_context_and_buffers()
+        ctx.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        ctx.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+
+    def render(self) -> np.ndarray:
+        self._ensure_env()
+        self._env.sim._render_context_offscreen.gl_ctx.make_current()
+        image = self._env.sim.render(width=self.image_size, height=self.image_size, camera_name=CAMERA_NAME)
+        return np.ascontiguousarray(image[::-1])
+
+    def _state(self) -> np.ndarray:
+        o = self._raw_obs
+        joints = np.zeros(2 * NUM_JOINTS, np.float32)
+        n = len(o["robot0_joint_pos"])
+        joints[:n], joints[NUM_JOINTS : NUM_JOINTS + n] = o["robot0_joint_pos"], o["robot0_joint_vel"]
+        gripper = np.zeros(2, np.float32)
+        gripper[: min(2, len(o["robot0_gripper_qpos"]))] = o["robot0_gripper_qpos"][:2]
+        return np.concatenate([joints, o["robot0_eef_pos"], o["robot0_eef_quat"], gripper]).astype(np.float32)
+
+    def _observation(self) -> dict:
+        return {"pixels": self.render(), "agent_pos": self._state()}
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        self._ensure_env()
+        super().reset(seed=seed)
+        if seed is not None:  # object placement and the robot's initial noise, from this seed
+            self._env.rng.bit_generator.state = np.random.default_rng(seed).bit_generator.state
+            np.random.seed(seed)
+        self._raw_obs = self._env.reset()
+        self._expert = make_expert(self.manipulation)
+        self._steps = 0
+        return self._observation(), {"is_success": False}
+
+    def step(self, action: np.ndarray):
+        self._ensure_env()
+        action = np.asarray(action, dtype=np.float32)
+        if action.shape != (ACTION_DIM,):
+            raise ValueError(f"Expected one action of shape ({ACTION_DIM},), got {action.shape}.")
+        self._raw_obs, reward, _, _ = self._env.step(action)
+        success = bool(self._env._check_success())
+        self._steps += 1
+        truncated = self._steps >= self._max_episode_steps and not success
+        info = {"is_success": success, "task": self.task}
+        return self._observation(), float(reward), success, truncated, info
+
+    def expert_action(self) -> np.ndarray:
+        """The scripted expert's continuous action for the current state."""
+        self._ensure_env()
+        return self._expert(self._raw_obs).astype(np.float32)
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.sim._render_context_offscreen.gl_ctx.make_current()
+            self._env.close()
+            self._env = None
+
+
+def observation_features(image_size: int) -> dict:
+    return {
+        "observation.image": {
+            "dtype": "video",
+            "shape": (image_size, image_size, 3),
+            "names": ["height", "width", "channels"],
+        },
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": list(STATE_NAMES)},
+    }
+
+
+def action_feature() -> dict:
+    return {"dtype": "float32", "shape": (ACTION_DIM,), "names": list(ACTION_NAMES)}
