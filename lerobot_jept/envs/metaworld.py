@@ -7,9 +7,8 @@ repeat of 2 and episodes truncated after 250 (policy) steps. The camera is LeRob
 ``metaworld`` env does, so the two envs show the same picture.
 
 :class:`JeptMetaworldEnv` is a ``gymnasium.Env`` whose observation is ``{"pixels": (H, W, 3) uint8,
-"agent_pos": (18,) float32}``; with a prompt bank (evaluation) it adds the episode's prompt video,
-``"prompt_video": (N, H, W, 3) uint8`` and ``"prompt_video_mask": (N,)``, chosen from the reset seed. It also
-exposes the task's scripted expert (:meth:`expert_action`), which the
+"agent_pos": (18,) float32}`` (evaluation adds the prompt video with
+:class:`~lerobot_jept.envs.prompting.PromptVideoWrapper`). It also exposes the task's scripted expert (:meth:`expert_action`), which the
 builder uses and evaluation ignores.
 """
 
@@ -101,10 +100,6 @@ class JeptMetaworldEnv(gym.Env):
         action_repeat: simulator steps per policy step (the paper uses 2).
         max_episode_steps: policy steps before truncation (the paper uses 250).
         fast_render: turn off MSAA, shadows and reflections (about 7x faster on a CPU renderer).
-        prompt_repo_id, prompt_root: a prompt bank (LeRobotDataset of prompt videos); when set, every
-            observation carries the episode's prompt video: prompt ``seed % num_prompts`` of the task, so 50
-            seeded episodes over 10 prompts are the paper's "10 prompt videos x 5 seeds".
-        prompt_max_frames: prompt frames delivered (uniformly subsampled, zero-padded and masked).
 
     ``step`` ends the episode (``terminated``) on success, as LeRobot's Meta-World env does.
     """
@@ -118,9 +113,6 @@ class JeptMetaworldEnv(gym.Env):
         action_repeat: int = 2,
         max_episode_steps: int = 250,
         fast_render: bool = True,
-        prompt_repo_id: str | None = None,
-        prompt_root: str | None = None,
-        prompt_max_frames: int = 250,
     ):
         super().__init__()
         self.task = check_task(task)
@@ -131,24 +123,12 @@ class JeptMetaworldEnv(gym.Env):
         self.fast_render = fast_render
         self.render_mode = "rgb_array"
         self.metadata = {**self.metadata, "render_fps": self.fps}
-        observation_space = {
-            "pixels": spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
-            "agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
-        }
-        self._prompts = None
-        if prompt_repo_id is not None:
-            from lerobot_jept.prompts import PromptBank
-
-            self._prompts = PromptBank(prompt_repo_id, prompt_root, prompt_max_frames, image_size)
-            self._prompt_episodes = self._prompts.episodes(self.task_description)
-            self._prompt_size = prompt_max_frames
-            observation_space["prompt_video"] = spaces.Box(
-                0, 255, (prompt_max_frames, image_size, image_size, 3), np.uint8
-            )
-            observation_space["prompt_video_mask"] = spaces.Box(0, 1, (prompt_max_frames,), np.uint8)
-        self.observation_space = spaces.Dict(observation_space)
-        self.prompt_episode: int | None = None
-        self._resets = 0
+        self.observation_space = spaces.Dict(
+            {
+                "pixels": spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+                "agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
+            }
+        )
         self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
         self._env = None  # created lazily, inside the process (and GL context) that steps it
         self._viewer = None
@@ -202,20 +182,7 @@ class JeptMetaworldEnv(gym.Env):
         state = np.concatenate(
             [data.qpos[:NUM_ARM_JOINTS], data.qvel[:NUM_ARM_JOINTS], self._raw_obs[:4]]
         ).astype(np.float32)
-        obs = {"pixels": self.render(), "agent_pos": state}
-        if self._prompts is not None:
-            obs["prompt_video"], obs["prompt_video_mask"] = self._prompt_arrays
-        return obs
-
-    def _choose_prompt(self, seed: int | None) -> None:
-        """Prompt ``seed % num_prompts`` of the task (the next one in turn when reset without a seed)."""
-        index = seed if seed is not None else self._resets
-        self.prompt_episode = self._prompt_episodes[index % len(self._prompt_episodes)]
-        frames = self._prompts.video(self.prompt_episode).permute(0, 2, 3, 1).numpy()
-        video = np.zeros(self.observation_space["prompt_video"].shape, np.uint8)
-        mask = np.zeros(self._prompt_size, np.uint8)
-        video[: len(frames)], mask[: len(frames)] = frames, 1
-        self._prompt_arrays = (video, mask)
+        return {"pixels": self.render(), "agent_pos": state}
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._ensure_env()
@@ -224,9 +191,6 @@ class JeptMetaworldEnv(gym.Env):
             self._env.seed(seed)
         self._raw_obs, _ = self._env.reset()
         self._steps = 0
-        if self._prompts is not None:
-            self._choose_prompt(seed)
-        self._resets += 1
         return self._observation(), {"is_success": False}
 
     def step(self, action: np.ndarray):

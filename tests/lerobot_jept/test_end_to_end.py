@@ -16,7 +16,6 @@ from lerobot.envs.utils import env_to_policy_features, preprocess_observation
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
 from lerobot_jept.envs.configs import JeptMetaworldEnvConfig
-from lerobot_jept.envs.metaworld import JeptMetaworldEnv
 from tests.conftest import load
 
 BIN = Path(sys.executable).parent
@@ -174,7 +173,10 @@ def test_env_observation_matches_a_builder_frame(tiny_build):
 
 
 def test_prompt_choice_is_deterministic_per_seed(tiny_build):
-    env = JeptMetaworldEnv("handle-press-v3", image_size=64, prompt_repo_id=PROMPTS, prompt_max_frames=4)
+    env_cfg = JeptMetaworldEnvConfig(
+        task="handle-press-v3", image_size=64, prompt_repo_id=PROMPTS, prompt_max_frames=4
+    )
+    env = env_cfg.make_prompted("handle-press-v3")
     chosen = {}
     for seed in (0, 1, 2, 3, 0, 1):
         obs, _ = env.reset(seed=seed)
@@ -183,7 +185,7 @@ def test_prompt_choice_is_deterministic_per_seed(tiny_build):
     for picks in chosen.values():
         assert all(p[0] == picks[0][0] for p in picks)
         assert all(np.array_equal(p[1], picks[0][1]) for p in picks)
-    assert {picks[0][0] for picks in chosen.values()} == set(env._prompt_episodes)  # both prompts in use
+    assert {picks[0][0] for picks in chosen.values()} == set(env.episodes)  # both prompts in use
     assert chosen[0][0][0] == chosen[2][0][0] != chosen[1][0][0]  # prompt = seed % num_prompts
 
 

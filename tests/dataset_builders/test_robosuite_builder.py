@@ -1,0 +1,148 @@
+"""The robosuite builder, env and experts on the real simulator, at tiny sizes."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dataset_builders.core import build
+from dataset_builders.robosuite import RobosuiteBuildConfig, RobosuiteSimulator, main
+from lerobot_jept.discretization import snap_to_bins
+from lerobot_jept.envs.robosuite import ARMS, STATE_DIM, JeptRobosuiteEnv
+from tests.conftest import load
+
+RS_TINY = dict(
+    demo_tasks=["panda-stack"],
+    video_tasks=["sawyer-stack"],
+    unseen_tasks=["ur5e-lift"],
+    episodes_per_task=2,
+    prompts_per_task=1,
+    image_size=64,
+    episodes_per_shard=2,
+)
+
+
+@pytest.fixture(scope="module")
+def rs_build():
+    cfg = RobosuiteBuildConfig(repo_id="test/rs_tiny", **RS_TINY)
+    return cfg, build(cfg, RobosuiteSimulator())
+
+
+def test_repo_schemas(rs_build):
+    for role, episodes in {"demo": 2, "video": 2, "prompts": 3, "mix": 4}.items():
+        ds = load(f"test/rs_tiny_{role}")
+        assert ds.meta.total_episodes == episodes
+        assert ds.meta.fps == 20 and ds.meta.robot_type == "panda"
+        assert ds.meta.features["observation.state"]["shape"] in ([STATE_DIM], (STATE_DIM,))
+        has_action = role in ("demo", "mix")
+        assert ("action" in ds.meta.features) == has_action
+        if has_action:
+            assert tuple(ds.meta.features["action"]["shape"]) == (7,)
+    build_meta = json.loads((Path(load("test/rs_tiny_mix").root) / "meta/jept_build.json").read_text())
+    assert build_meta["split"] == {
+        "demo": ["panda-stack"],
+        "video": ["sawyer-stack"],
+        "unseen": ["ur5e-lift"],
+    }
+    assert build_meta["protocol"]["simulator"] == "robosuite"
+
+
+def test_prompts_show_the_prompt_arm_and_demos_the_panda(rs_build):
+    prompts, demo = load("test/rs_tiny_prompts"), load("test/rs_tiny_demo")
+    tasks = {prompts.meta.episodes[e]["tasks"][0]: e for e in range(prompts.meta.total_episodes)}
+    ur5e = prompts[prompts.meta.episodes[tasks["lift (prompted by UR5e)"]]["dataset_from_index"]]
+    panda = demo[0]
+    # UR5e has 6 joints: the 7th joint slots of its state are zero-padded; the Panda uses all 7
+    assert ur5e["observation.state"][6] == 0 and ur5e["observation.state"][13] == 0
+    assert panda["observation.state"][6] != 0
+
+
+def test_first_frame_matches_env_reset(rs_build):
+    home = Path(os.environ["HF_LEROBOT_HOME"])
+    shard = json.loads((home / "test/rs_tiny.build/shards/demo/panda-stack/0000/shard.json").read_text())
+    frame = load("test/rs_tiny_demo")[0]
+    env = JeptRobosuiteEnv("panda-stack", image_size=64)
+    obs, _ = env.reset(seed=shard["seeds"][0])
+    env.close()
+    image = frame["observation.image"].permute(1, 2, 0).numpy() * 255
+    assert image.std() > 10
+    err = np.abs(image - obs["pixels"]).mean()
+    assert err < 15 and np.abs(image - obs["pixels"][::-1]).mean() > 2 * err  # same picture, upright
+    np.testing.assert_allclose(frame["observation.state"].numpy(), obs["agent_pos"], rtol=1e-5, atol=1e-6)
+
+
+def test_same_seed_same_episode():
+    env = JeptRobosuiteEnv("panda-lift", image_size=32)
+    first = [env.reset(seed=3)[0]["agent_pos"] for _ in range(2)]
+    other = env.reset(seed=4)[0]["agent_pos"]
+    env.close()
+    np.testing.assert_array_equal(first[0], first[1])
+    assert not np.array_equal(first[0], other)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("manipulation", ["lift", "stack"])
+@pytest.mark.parametrize("arm", sorted(ARMS))
+def test_expert_succeeds_on_every_arm(arm, manipulation):
+    """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes."""
+    env = JeptRobosuiteEnv(f"{arm}-{manipulation}", image_size=32, embodiment="prompt")
+    successes = 0
+    for seed in range(10):
+        env.reset(seed=seed)
+        while True:
+            _, _, terminated, truncated, info = env.step(snap_to_bins(env.expert_action(), 7))
+            if terminated or truncated:
+                break
+        successes += info["is_success"]
+    env.close()
+    assert successes >= 9, f"{arm}-{manipulation}: {successes}/10"
+
+
+def test_bad_flags(tmp_path, capsys):
+    with pytest.raises(SystemExit, match="Unknown robosuite task 'panda-stak'.*panda-stack"):
+        main(["--repo_id=x/y", "--demo_tasks=[panda-stak]", f"--root={tmp_path}"])
+    with pytest.raises(SystemExit, match="--action_repeat=1"):
+        main(["--repo_id=x/y", "--action_repeat=2", f"--root={tmp_path}"])
+
+
+@pytest.mark.slow
+def test_train_and_eval_end_to_end(rs_build, tmp_path):
+    bin_dir = Path(sys.executable).parent
+    config = Path(__file__).parents[2] / "examples/configs/train_jept_small_cpu.json"
+    commands = [
+        [
+            "lerobot-train",
+            f"--config_path={config}",
+            "--dataset.repo_id=test/rs_tiny_mix",
+            "--policy.prompt_repo_id=test/rs_tiny_prompts",
+            "--policy.max_prompt_length=4",
+            "--policy.image_size=64",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            f"--output_dir={tmp_path / 'train'}",
+        ],
+        [
+            "lerobot-eval",
+            f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
+            "--env.type=jept_robosuite",
+            "--env.task=ur5e-lift",
+            "--env.image_size=64",
+            "--env.episode_length=10",
+            "--env.prompt_repo_id=test/rs_tiny_prompts",
+            "--env.prompt_max_frames=4",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            "--policy.device=cpu",
+            f"--output_dir={tmp_path / 'eval'}",
+        ],
+    ]
+    for cmd in commands:
+        proc = subprocess.run([str(bin_dir / cmd[0]), *cmd[1:]], capture_output=True, text=True, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-4000:]
+    info = json.loads((tmp_path / "eval/eval_info.json").read_text())
+    assert info["overall"]["n_episodes"] == 1 and 0 <= info["overall"]["pc_success"] <= 100
