@@ -1,6 +1,6 @@
 """Builder throughput, measured against the raw simulator in the same run.
 
-Prints ``<sim>_builder_vs_raw: R`` (builder frames/s with 1 worker / raw step+render frames/s of the same env
+For Meta-World and robosuite, prints ``<sim>_builder_vs_raw: R`` (builder frames/s with 1 worker / raw step+render frames/s of the same env
 and settings) and ``<sim>_builder_2workers_speedup: R`` (builder frames/s with 2 workers / with 1 worker).
 """
 
@@ -68,14 +68,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--episodes", type=int, default=16, help="episodes per task in each timed build")
     parser.add_argument("--raw_seconds", type=float, default=10.0)
+    parser.add_argument("--sims", default="metaworld,robosuite", help="comma-separated simulators to measure")
     args = parser.parse_args()
     from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator
+    from dataset_builders.robosuite import RobosuiteBuildConfig, RobosuiteSimulator
 
-    results = bench(
-        MetaworldSimulator(), MetaworldBuildConfig, ["door-open-v3"], args.episodes, args.raw_seconds
-    )
-    for name, value in results.items():
-        print(f"{name}: {value:.3f}")
+    setups = {
+        "metaworld": (MetaworldSimulator(), MetaworldBuildConfig, ["door-open-v3"]),
+        "robosuite": (RobosuiteSimulator(), RobosuiteBuildConfig, ["panda-lift"]),
+    }
+    for name in args.sims.split(","):
+        sim, config_cls, tasks = setups[name]
+        for metric, value in bench(sim, config_cls, tasks, args.episodes, args.raw_seconds).items():
+            print(f"{metric}: {value:.3f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
-"""``jept-eval-suite``: the paper's Table 1 for one checkpoint, through LeRobot's own ``eval_main``.
+"""``jept-eval-suite``: the paper's Table 1 (Meta-World) or Table 3 (robosuite) for one checkpoint, through
+LeRobot's own ``eval_main``.
 
 Every demo, video and unseen task recorded in the mix repo's split metadata (``meta/jept_build.json``) is
-evaluated with ``--env.type=jept_metaworld`` under the build's protocol (image size, action repeat, truncation)
+evaluated with ``--env.type=jept_metaworld`` or ``jept_robosuite`` under the build's protocol (image size, action repeat, truncation)
 and prompt bank. Writes ``results.json``, ``results.md`` (Table 1's rows: T_demo average, T_vid average, each
 unseen task, seen average, unseen average) and ``results.png``, plus LeRobot's eval_info.json and videos per
 task under ``tasks/<task>/``.
@@ -26,6 +27,10 @@ from lerobot_jept.envs.metaworld import (
 )
 
 BUILD_FILE = "meta/jept_build.json"
+TITLES = {
+    "metaworld": "JEPT on Meta-World (Table 1 layout)",
+    "robosuite": "JEPT on robosuite (Table 3 layout)",
+}
 PAPER_SPLIT = {"demo": TABLE7_DEMO_TASKS, "video": TABLE7_VIDEO_TASKS, "unseen": TABLE7_UNSEEN_TASKS}
 # Table 1, JEPT column (success %), for the paper's own split.
 PAPER_TABLE1 = {
@@ -113,7 +118,7 @@ def markdown(rows: dict[str, float], per_task: dict[str, dict], paper: bool) -> 
     return "\n".join(lines) + "\n"
 
 
-def bar_chart(rows: dict[str, float], path: Path, paper: bool) -> None:
+def bar_chart(rows: dict[str, float], path: Path, paper: bool, title: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,7 +135,7 @@ def bar_chart(rows: dict[str, float], path: Path, paper: bool) -> None:
     ax.set_xticks(list(xs), names, rotation=30, ha="right")
     ax.set_ylabel("success (%)")
     ax.set_ylim(0, 100)
-    ax.set_title("JEPT on Meta-World (Table 1 layout)")
+    ax.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -143,22 +148,25 @@ def evaluate_task(cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str,
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.scripts.lerobot_eval import eval_main
 
-    from lerobot_jept.envs.configs import JeptMetaworldEnvConfig
+    from lerobot_jept.envs.configs import JeptMetaworldEnvConfig, JeptRobosuiteEnvConfig
 
     policy = PreTrainedConfig.from_pretrained(cfg.policy.path)
     policy.pretrained_path = Path(cfg.policy.path)
     if cfg.policy.device:
         policy.device = cfg.policy.device
     protocol = build["protocol"]
-    env = JeptMetaworldEnvConfig(
+    common = dict(
         task=task,
         image_size=protocol["image_size"],
-        action_repeat=protocol["action_repeat"],
         episode_length=protocol["max_episode_steps"],
         prompt_repo_id=prompt_repo_id,
         prompt_root=cfg.prompt_root,
         prompt_max_frames=getattr(policy, "max_prompt_length", 250),
     )
+    if protocol["simulator"] == "metaworld":
+        env = JeptMetaworldEnvConfig(**common, action_repeat=protocol["action_repeat"])
+    else:
+        env = JeptRobosuiteEnvConfig(**common)
     batch = max(1, min(cfg.batch_size, cfg.n_episodes))
     eval_cfg = EvalPipelineConfig(
         env=env,
@@ -175,9 +183,10 @@ def run_suite(cfg: SuiteConfig) -> dict:
     if not cfg.policy.path or not cfg.dataset.repo_id:
         raise SuiteError("Pass both --policy.path=CHECKPOINT and --dataset.repo_id=ORG/NAME_mix.")
     build, _ = read_build_metadata(cfg.dataset.repo_id, cfg.dataset.root)
-    if build.get("protocol", {}).get("simulator") != "metaworld":
+    simulator = build.get("protocol", {}).get("simulator")
+    if simulator not in TITLES:
         raise SuiteError(
-            f"{cfg.dataset.repo_id} was not built from Meta-World; the suite runs Meta-World only."
+            f"{cfg.dataset.repo_id} was built from {simulator!r}; the suite runs {sorted(TITLES)}."
         )
     split = build["split"]
     prompt_repo_id = cfg.prompt_repo_id or build["repos"]["prompts"]
@@ -195,7 +204,9 @@ def run_suite(cfg: SuiteConfig) -> dict:
             "eval_info": str(out / "tasks" / task / "eval_info.json"),
         }
     rows = summarise(split, {t: r["pc_success"] for t, r in per_task.items()})
-    paper = {k: sorted(v) for k, v in split.items()} == {k: sorted(v) for k, v in PAPER_SPLIT.items()}
+    paper = simulator == "metaworld" and {k: sorted(v) for k, v in split.items()} == {
+        k: sorted(v) for k, v in PAPER_SPLIT.items()
+    }
     results = {
         "policy": cfg.policy.path,
         "dataset": cfg.dataset.repo_id,
@@ -209,7 +220,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
     (out / "results.json").write_text(json.dumps(results, indent=2))
     table = markdown(rows, per_task, paper)
     (out / "results.md").write_text(table)
-    bar_chart(rows, out / "results.png", paper)
+    bar_chart(rows, out / "results.png", paper, TITLES[simulator])
     print(table)
     print(f"Wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'results.png'}")
     return results

@@ -141,8 +141,21 @@ def test_train_and_eval_end_to_end(rs_build, tmp_path):
             f"--output_dir={tmp_path / 'eval'}",
         ],
     ]
+    commands.append(
+        [
+            "jept-eval-suite",
+            f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
+            "--dataset.repo_id=test/rs_tiny_mix",
+            "--n_episodes=1",
+            "--batch_size=1",
+            f"--output_dir={tmp_path / 'suite'}",
+        ]
+    )
     for cmd in commands:
         proc = subprocess.run([str(bin_dir / cmd[0]), *cmd[1:]], capture_output=True, text=True, cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-4000:]
     info = json.loads((tmp_path / "eval/eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 1 and 0 <= info["overall"]["pc_success"] <= 100
+    results = json.loads((tmp_path / "suite/results.json").read_text())
+    assert list(results["table"]) == ["T_demo", "T_vid", "ur5e-lift", "Seen average", "Unseen average"]
+    assert (tmp_path / "suite/results.png").stat().st_size > 1000
