@@ -1,18 +1,30 @@
 """JEPT (Joint Embedding Predictive Transformer) as a LeRobot policy plugin.
 
-Importing this package registers the ``jept`` policy type, its processor steps and the ``jept_metaworld`` and
-``jept_robosuite`` envs.
+``import lerobot_policy_jept`` (what LeRobot's scripts do) registers the ``jept`` policy type, its processor
+steps and the ``jept_metaworld`` / ``jept_robosuite`` envs. The package-level names below load on first use, so
+that the dataset builders, which import ``lerobot_jept.envs`` in every worker process, do not pay for the model.
 """
 
-from lerobot_jept.configuration_jept import JEPTConfig
-from lerobot_jept.envs.configs import JeptMetaworldEnvConfig, JeptRobosuiteEnvConfig
-from lerobot_jept.modeling_jept import JEPTPolicy
-from lerobot_jept.processor_jept import make_jept_pre_post_processors
+import importlib
 
-__all__ = [
-    "JEPTConfig",
-    "JEPTPolicy",
-    "JeptMetaworldEnvConfig",
-    "JeptRobosuiteEnvConfig",
-    "make_jept_pre_post_processors",
-]
+_EXPORTS = {
+    "JEPTConfig": "lerobot_jept.configuration_jept",
+    "JEPTPolicy": "lerobot_jept.modeling_jept",
+    "make_jept_pre_post_processors": "lerobot_jept.processor_jept",
+    "JeptMetaworldEnvConfig": "lerobot_jept.envs.configs",
+    "JeptRobosuiteEnvConfig": "lerobot_jept.envs.configs",
+}
+
+__all__ = [*_EXPORTS, "register"]
+
+
+def register() -> None:
+    """Register everything the plugin adds to LeRobot (policy, processor steps, env types)."""
+    for module in sorted(set(_EXPORTS.values())):
+        importlib.import_module(module)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'lerobot_jept' has no attribute {name!r}")

@@ -228,7 +228,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
 
 def main() -> None:
     logging.basicConfig(level=logging.WARNING)
-    import lerobot_jept  # noqa: F401  (registers the policy and the env)
+    import lerobot_policy_jept  # noqa: F401  (registers the policy and the envs)
 
     cfg = draccus.parse(SuiteConfig)
     try:
