@@ -18,7 +18,11 @@ from lerobot_jept.envs.rendering import setup_offscreen_gl
 from lerobot_jept.envs.robosuite_experts import make_expert
 
 ARMS = {"panda": "Panda", "sawyer": "Sawyer", "iiwa": "IIWA", "ur5e": "UR5e"}
-MANIPULATIONS = {"lift": "Lift", "stack": "Stack"}  # robosuite env per manipulation with a scripted expert
+MANIPULATIONS = {
+    "lift": "Lift",
+    "stack": "Stack",
+    "can": "PickPlaceCan",
+}  # robosuite env per manipulation with a scripted expert
 EXECUTING_ARM = "panda"
 ROBOT_TYPE = "panda"
 CAMERA_NAME = "agentview"
@@ -161,7 +165,7 @@ class JeptRobosuiteEnv(gym.Env):
             self._env.rng.bit_generator.state = np.random.default_rng(seed).bit_generator.state
             np.random.seed(seed)
         self._raw_obs = self._env.reset()
-        self._expert = make_expert(self.manipulation)
+        self._expert = make_expert(self.manipulation, self._env)
         self._steps = 0
         return self._observation(), {"is_success": False}
 

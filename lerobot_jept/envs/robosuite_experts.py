@@ -32,12 +32,24 @@ def osc_action(eef: np.ndarray, goal: np.ndarray, yaw_error: float, gripper: flo
 
 
 class PickPlaceExpert:
-    """Above the object (yaw matched, cube symmetry 90 deg) -> descend -> close -> lift; with a ``target``
-    object, carry it above the target, lower it until it rests ``place_height`` above, open and retreat."""
+    """Above the object (yaw matched up to ``yaw_symmetry``) -> descend -> close -> lift; with a ``target`` (an
+    object name, or a fixed position), carry it above the target, lower it until it is ``place_height`` above,
+    open and retreat."""
 
-    def __init__(self, obj: str, target: str | None = None, place_height: float = 0.045):
-        self.obj, self.target, self.place_height = obj, target, place_height
+    def __init__(
+        self,
+        obj: str,
+        target: str | np.ndarray | None = None,
+        place_height: float = 0.045,
+        yaw_symmetry: float | None = np.pi / 2,
+        carry_height: float = 0.12,
+    ):
+        self.obj, self.target, self.place_height, self.yaw_symmetry = obj, target, place_height, yaw_symmetry
+        self.carry_height = carry_height
         self.phase, self.steps_in_phase, self._last = 0, 0, None
+
+    def target_pos(self, obs: dict) -> np.ndarray:
+        return obs[f"{self.target}_pos"] if isinstance(self.target, str) else np.asarray(self.target)
 
     def __call__(self, obs: dict) -> np.ndarray:
         eef, p = obs["robot0_eef_pos"], obs[f"{self.obj}_pos"]
@@ -48,7 +60,11 @@ class PickPlaceExpert:
             self.phase = 0
         if self.phase == 1 and self.steps_in_phase > 25:  # blocked on the way down: grasp here
             self.phase = 2
-        yaw_error = wrap(yaw_of(obs[f"{self.obj}_quat"]) - yaw_of(obs["robot0_eef_quat"]), np.pi / 2)
+        yaw_error = 0.0
+        if self.yaw_symmetry is not None:
+            yaw_error = wrap(
+                yaw_of(obs[f"{self.obj}_quat"]) - yaw_of(obs["robot0_eef_quat"]), self.yaw_symmetry
+            )
         goal, gripper, turn = eef.copy(), OPEN, 0.0
         if self.phase == 0:
             goal, turn = p + [0, 0, 0.10], yaw_error
@@ -67,16 +83,16 @@ class PickPlaceExpert:
             if self.target is None:
                 goal = np.array([eef[0], eef[1], p[2] + 0.15])
             else:
-                goal = np.array([eef[0], eef[1], obs[f"{self.target}_pos"][2] + 0.12])
+                goal = np.array([eef[0], eef[1], self.target_pos(obs)[2] + self.carry_height])
                 if abs(goal[2] - eef[2]) < 0.01:
                     self.phase = 4
         elif self.phase == 4:
-            gripper, t = CLOSE, obs[f"{self.target}_pos"]
-            goal = np.array([t[0] + eef[0] - p[0], t[1] + eef[1] - p[1], t[2] + 0.12])
+            gripper, t = CLOSE, self.target_pos(obs)
+            goal = np.array([t[0] + eef[0] - p[0], t[1] + eef[1] - p[1], t[2] + self.carry_height])
             if np.linalg.norm(goal[:2] - eef[:2]) < 0.009:
                 self.phase = 5
         elif self.phase == 5:
-            gripper, t = CLOSE, obs[f"{self.target}_pos"]
+            gripper, t = CLOSE, self.target_pos(obs)
             goal = np.array(
                 [t[0] + eef[0] - p[0], t[1] + eef[1] - p[1], eef[2] - (p[2] - t[2] - self.place_height)]
             )
@@ -87,10 +103,15 @@ class PickPlaceExpert:
         return osc_action(eef, goal, turn, gripper)
 
 
-def make_expert(manipulation: str):
-    """A fresh expert for one episode of ``manipulation``."""
+def make_expert(manipulation: str, env=None):
+    """A fresh expert for one episode of ``manipulation`` (``env``: the robosuite env, for fixed targets)."""
     if manipulation == "lift":
         return PickPlaceExpert("cube")
     if manipulation == "stack":
         return PickPlaceExpert("cubeA", target="cubeB")
+    if manipulation == "can":
+        bin_centre = env.target_bin_placements[env.object_to_id["can"]]
+        return PickPlaceExpert(
+            "Can", target=bin_centre, place_height=0.12, yaw_symmetry=None, carry_height=0.18
+        )
     raise ValueError(f"No scripted expert for {manipulation!r} yet.")

@@ -84,9 +84,12 @@ def test_same_seed_same_episode():
     assert not np.array_equal(first[0], other)
 
 
+EXPERT_CASES = [(arm, m) for m in ("lift", "stack") for arm in sorted(ARMS)]
+EXPERT_CASES += [(arm, "can") for arm in ("iiwa", "panda", "ur5e")]  # Sawyer: 4/10, not in the default split
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("manipulation", ["lift", "stack"])
-@pytest.mark.parametrize("arm", sorted(ARMS))
+@pytest.mark.parametrize("arm, manipulation", EXPERT_CASES)
 def test_expert_succeeds_on_every_arm(arm, manipulation):
     """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes."""
     env = JeptRobosuiteEnv(f"{arm}-{manipulation}", image_size=32, embodiment="prompt")
