@@ -22,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lerobot_jept.envs import spec
 from lerobot_jept.envs.rendering import setup_offscreen_gl
 
 ROBOT_TYPE = "sawyer"
@@ -123,12 +124,7 @@ class JeptMetaworldEnv(gym.Env):
         self.fast_render = fast_render
         self.render_mode = "rgb_array"
         self.metadata = {**self.metadata, "render_fps": self.fps}
-        self.observation_space = spaces.Dict(
-            {
-                "pixels": spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
-                "agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
-            }
-        )
+        self.observation_space = spec.observation_space(image_size, STATE_DIM)
         self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
         self._env = None  # created lazily, inside the process (and GL context) that steps it
         self._viewer = None
@@ -195,9 +191,7 @@ class JeptMetaworldEnv(gym.Env):
 
     def step(self, action: np.ndarray):
         self._ensure_env()
-        action = np.asarray(action, dtype=np.float32)
-        if action.shape != (ACTION_DIM,):
-            raise ValueError(f"Expected one action of shape ({ACTION_DIM},), got {action.shape}.")
+        action = spec.checked_action(action, ACTION_DIM)
         reward, success = 0.0, False
         for _ in range(self.action_repeat):
             self._raw_obs, r, _, _, info = self._env.step(action)
@@ -223,16 +217,8 @@ class JeptMetaworldEnv(gym.Env):
 
 
 def observation_features(image_size: int) -> dict:
-    """LeRobot dataset features of one observation (the builder writes them; the env produces them)."""
-    return {
-        "observation.image": {
-            "dtype": "video",
-            "shape": (image_size, image_size, 3),
-            "names": ["height", "width", "channels"],
-        },
-        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": list(STATE_NAMES)},
-    }
+    return spec.observation_features(image_size, STATE_NAMES)
 
 
 def action_feature() -> dict:
-    return {"dtype": "float32", "shape": (ACTION_DIM,), "names": list(ACTION_NAMES)}
+    return spec.action_feature(ACTION_NAMES)

@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lerobot_jept.envs import spec
 from lerobot_jept.envs.rendering import setup_offscreen_gl
 from lerobot_jept.envs.robosuite_experts import make_expert
 
@@ -87,12 +88,7 @@ class JeptRobosuiteEnv(gym.Env):
         self.image_size = image_size
         self._max_episode_steps = max_episode_steps
         self.render_mode = "rgb_array"
-        self.observation_space = spaces.Dict(
-            {
-                "pixels": spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
-                "agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
-            }
-        )
+        self.observation_space = spec.observation_space(image_size, STATE_DIM)
         self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
         self._env = None
         self._raw_obs = None
@@ -171,9 +167,7 @@ class JeptRobosuiteEnv(gym.Env):
 
     def step(self, action: np.ndarray):
         self._ensure_env()
-        action = np.asarray(action, dtype=np.float32)
-        if action.shape != (ACTION_DIM,):
-            raise ValueError(f"Expected one action of shape ({ACTION_DIM},), got {action.shape}.")
+        action = spec.checked_action(action, ACTION_DIM)
         self._raw_obs, reward, _, _ = self._env.step(action)
         success = bool(self._env._check_success())
         self._steps += 1
@@ -194,15 +188,8 @@ class JeptRobosuiteEnv(gym.Env):
 
 
 def observation_features(image_size: int) -> dict:
-    return {
-        "observation.image": {
-            "dtype": "video",
-            "shape": (image_size, image_size, 3),
-            "names": ["height", "width", "channels"],
-        },
-        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": list(STATE_NAMES)},
-    }
+    return spec.observation_features(image_size, STATE_NAMES)
 
 
 def action_feature() -> dict:
-    return {"dtype": "float32", "shape": (ACTION_DIM,), "names": list(ACTION_NAMES)}
+    return spec.action_feature(ACTION_NAMES)

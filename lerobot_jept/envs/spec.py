@@ -1,0 +1,37 @@
+"""What every JEPT env shares: the observation space and the LeRobot features the builders write for it."""
+
+import numpy as np
+from gymnasium import spaces
+
+
+def observation_space(image_size: int, state_dim: int) -> spaces.Dict:
+    """``{"pixels": (H, W, 3) uint8, "agent_pos": (state_dim,) float32}``."""
+    return spaces.Dict(
+        {
+            "pixels": spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+            "agent_pos": spaces.Box(-np.inf, np.inf, (state_dim,), np.float32),
+        }
+    )
+
+
+def checked_action(action, action_dim: int) -> np.ndarray:
+    action = np.asarray(action, dtype=np.float32)
+    if action.shape != (action_dim,):
+        raise ValueError(f"Expected one action of shape ({action_dim},), got {action.shape}.")
+    return action
+
+
+def observation_features(image_size: int, state_names: list[str]) -> dict:
+    """LeRobot dataset features of one observation (the builder writes them; the env produces them)."""
+    return {
+        "observation.image": {
+            "dtype": "video",
+            "shape": (image_size, image_size, 3),
+            "names": ["height", "width", "channels"],
+        },
+        "observation.state": {"dtype": "float32", "shape": (len(state_names),), "names": list(state_names)},
+    }
+
+
+def action_feature(action_names: list[str]) -> dict:
+    return {"dtype": "float32", "shape": (len(action_names),), "names": list(action_names)}
