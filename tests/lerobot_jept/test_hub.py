@@ -272,9 +272,10 @@ def test_builder_push_sends_every_repo_with_cards_and_tags(tiny_build, recording
     uploads = {kw["repo_id"]: kw for name, kw in calls if name == "upload_folder"}
     for repo, upload in uploads.items():
         files = upload["files"]
-        assert {"meta/info.json", "meta/stats.json", "meta/jept_build.json", "meta/tasks.parquet"} <= set(
-            files
-        )
+        local = paths.repo(repo.rsplit("_", 1)[1])
+        assert files == sorted(str(p.relative_to(local)) for p in local.rglob("*") if p.is_file())  # exactly
+        meta = {"meta/info.json", "meta/stats.json", "meta/jept_build.json", "meta/tasks.parquet"}
+        assert meta <= set(files)
         assert any(f.startswith("data/") and f.endswith(".parquet") for f in files)
         assert any(f.startswith("videos/") and f.endswith(".mp4") for f in files), repo
     assert "action" not in json.loads(uploads["test/mw_tiny_video"]["contents"]["meta/info.json"])["features"]
@@ -325,11 +326,10 @@ def test_policy_push_sends_safetensors_processors_and_a_jept_card(tiny_build, re
     pre.push_to_hub(MODEL)
     post.push_to_hub(MODEL)
     uploads = [kw for name, kw in recording_hub.calls if name == "upload_folder"]
-    model_files = set(uploads[0]["files"])
-    assert {"config.json", "model.safetensors", "train_config.json", "README.md"} <= model_files
-    assert not any(f.endswith((".bin", ".pt", ".pth", ".pkl")) for f in model_files)
+    assert uploads[0]["files"] == ["README.md", "config.json", "model.safetensors", "train_config.json"]
     processor_files = set(uploads[1]["files"]) | set(uploads[2]["files"])
     assert {"policy_preprocessor.json", "policy_postprocessor.json"} <= processor_files
+    assert all(f.endswith((".json", ".safetensors")) for f in processor_files)  # no pickle anywhere
     card = uploads[0]["contents"]["README.md"]
     for text in (
         f"Training data: `{MIX}`",
