@@ -60,6 +60,21 @@ class SelfAttentionStack(nn.Module):
             x = layer(x, src_mask=mask)
         return self.norm(x), states
 
+    def forward_selected(self, x: Tensor, selected: Tensor, key_padding_mask: Tensor | None = None) -> Tensor:
+        """Outputs (B, M, D) of the tokens ``x[b, selected[b]]`` only (``selected``: (B, M) indices): every layer
+        but the last runs on all tokens, the last only on the selected queries. Same values as ``forward``."""
+        layers = self.layers.layers
+        for layer in layers[:-1]:
+            x = layer(x, src_key_padding_mask=key_padding_mask)
+        last = layers[-1]
+        picked = torch.gather(x, 1, selected[..., None].expand(-1, -1, x.shape[-1]))
+        kv = last.norm1(x)
+        attn = last.self_attn(
+            last.norm1(picked), kv, kv, key_padding_mask=key_padding_mask, need_weights=False
+        )[0]
+        picked = picked + last.dropout1(attn)
+        return self.norm(picked + last._ff_block(last.norm2(picked)))
+
     def extend(self, states: list[Tensor], x: Tensor) -> Tensor:
         """Outputs of new tokens ``x`` (B, M, D) appended after the tokens whose layer inputs are ``states``;
         they attend to all of those and to each other (a last group under a block-causal mask), and nothing

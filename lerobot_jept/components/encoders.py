@@ -68,13 +68,17 @@ class JointEmbeddingEncoder(nn.Module):
         """(B, T, N, D_in) -> (B, T - first, N, joint_dim): frame j (j >= ``first``) encoded bi-directionally
         over frames 0..j only. One batched pass over the windows, window j padding out the frames after j.
         """
-        b, t = obs_tokens.shape[:2]
+        b, t, n, _ = obs_tokens.shape
         steps = torch.arange(t, device=obs_tokens.device)
         ends = steps[first:]
-        padding = (steps[None, :] > ends[:, None]).repeat(b, 1)  # (B * windows, T)
-        h = self.forward(obs_tokens.repeat_interleave(len(ends), dim=0), padding)  # (B * windows, T, N, J)
-        h = rearrange(h, "(b w) t n d -> b w t n d", b=b)
-        return h[:, torch.arange(len(ends)), ends]
+        windows = len(ends)
+        padding = (steps[None, :] > ends[:, None]).repeat(b, 1).repeat_interleave(n, dim=1)  # (B*W, T*N)
+        x = self.inp(obs_tokens) + self.positions(t)
+        x = rearrange(x, "b t n d -> b (t n) d").repeat_interleave(windows, dim=0)
+        # only the tokens of each window's last frame are needed from the last layer
+        selected = (ends[:, None] * n + torch.arange(n, device=x.device)).repeat(b, 1)  # (B*W, N)
+        h = self.out(self.temporal.forward_selected(x, selected, padding))
+        return rearrange(h, "(b w) n d -> b w n d", b=b)
 
 
 class PromptVideoEncoder(nn.Module):
