@@ -71,8 +71,11 @@ def hub(tiny_build, checkpoint, tmp_path_factory):
         f'repos-path = "{tmp / "repos"}"\nmirror-netloc = "127.0.0.1:{port}"\n'
         f'mirror-lfs-netloc = "127.0.0.1:{port}"\n\n[accessibility]\noffline = true\n'
     )
-    server = subprocess.Popen(
-        [str(BIN / "olah-cli"), "-c", str(config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    server = subprocess.Popen(  # olah writes ./logs: run it in the test's folder
+        [str(BIN / "olah-cli"), "-c", str(config)],
+        cwd=tmp,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     endpoint = f"http://127.0.0.1:{port}"
     try:
