@@ -86,6 +86,7 @@ class JeptPromptVideoStep(ProcessorStep):
     max_frames: int = 250
     image_size: int = 224
     _bank: PromptBank | None = field(default=None, init=False, repr=False)
+    _last: tuple | None = field(default=None, init=False, repr=False)
 
     @property
     def bank(self) -> PromptBank:
@@ -120,7 +121,10 @@ class JeptPromptVideoStep(ProcessorStep):
                 candidates = self.bank.episodes(task)
                 pick = int(torch.randint(len(candidates), ())) if training else 0
                 episodes.append(candidates[pick])
-            observation[PROMPT_VIDEO], observation[PROMPT_MASK] = self.bank.batch(episodes)
+            if training or self._last is None or self._last[0] != episodes:
+                # inference repeats the same prompts every control step: build that batch once
+                self._last = (episodes, self.bank.batch(episodes))
+            observation[PROMPT_VIDEO], observation[PROMPT_MASK] = self._last[1]
         new = dict(transition)
         new[TransitionKey.OBSERVATION] = observation
         return new

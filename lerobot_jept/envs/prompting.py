@@ -6,6 +6,7 @@
 ``jept_robosuite`` share.
 """
 
+import abc
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -125,12 +126,13 @@ class JeptEnvConfig(EnvConfig):
     def tasks(self) -> list[str]:
         return [t.strip() for t in (self.task or "").split(",") if t.strip()]
 
+    @abc.abstractmethod
     def check_task(self, task: str) -> None:
-        raise NotImplementedError
+        """Raise ValueError (naming close matches) for a task the env type does not have."""
 
+    @abc.abstractmethod
     def make_one(self, task: str) -> gym.Env:
         """The bare env of one task (the builder's)."""
-        raise NotImplementedError
 
     def make_prompted(self, task: str) -> gym.Env:
         env = self.make_one(task)
