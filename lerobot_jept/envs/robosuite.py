@@ -23,6 +23,7 @@ MANIPULATIONS = {
     "lift": "Lift",
     "stack": "Stack",
     "can": "PickPlaceCan",
+    "square": "NutAssemblySquare",
 }  # robosuite env per manipulation with a scripted expert
 EXECUTING_ARM = "panda"
 ROBOT_TYPE = "panda"

@@ -17,7 +17,7 @@ from tests.conftest import load
 
 RS_TINY = dict(
     demo_tasks=["panda-stack"],
-    video_tasks=["sawyer-stack"],
+    video_tasks=["sawyer-square"],
     unseen_tasks=["ur5e-lift"],
     episodes_per_task=2,
     prompts_per_task=1,
@@ -45,7 +45,7 @@ def test_repo_schemas(rs_build):
     build_meta = json.loads((Path(load("test/rs_tiny_mix").root) / "meta/jept_build.json").read_text())
     assert build_meta["split"] == {
         "demo": ["panda-stack"],
-        "video": ["sawyer-stack"],
+        "video": ["sawyer-square"],
         "unseen": ["ur5e-lift"],
     }
     assert build_meta["protocol"]["simulator"] == "robosuite"
@@ -84,14 +84,17 @@ def test_same_seed_same_episode():
     assert not np.array_equal(first[0], other)
 
 
-EXPERT_CASES = [(arm, m) for m in ("lift", "stack") for arm in sorted(ARMS)]
+EXPERT_CASES = [(arm, m) for m in ("lift", "stack", "square") for arm in sorted(ARMS)]
 EXPERT_CASES += [(arm, "can") for arm in ("iiwa", "panda", "ur5e")]  # Sawyer: 4/10, not in the default split
+# The IIWA reaches the square peg with its elbow almost straight and sometimes stalls short of it (README).
+MIN_SUCCESSES = {("iiwa", "square"): 8}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("arm, manipulation", EXPERT_CASES)
 def test_expert_succeeds_on_every_arm(arm, manipulation):
-    """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes."""
+    """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes
+    (80% for the IIWA's Square)."""
     env = JeptRobosuiteEnv(f"{arm}-{manipulation}", image_size=32, embodiment="prompt")
     successes = 0
     for seed in range(10):
@@ -102,7 +105,7 @@ def test_expert_succeeds_on_every_arm(arm, manipulation):
                 break
         successes += info["is_success"]
     env.close()
-    assert successes >= 9, f"{arm}-{manipulation}: {successes}/10"
+    assert successes >= MIN_SUCCESSES.get((arm, manipulation), 9), f"{arm}-{manipulation}: {successes}/10"
 
 
 def test_bad_flags(tmp_path, capsys):
