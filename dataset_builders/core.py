@@ -21,6 +21,7 @@ here, once.
 """
 
 import abc
+import atexit
 import json
 import logging
 import multiprocessing as mp
@@ -29,7 +30,7 @@ import queue
 import shutil
 import time
 from collections import defaultdict
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -313,34 +314,41 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
         use_videos=True,
         streaming_encoding=True,
         rgb_encoder=encoder_config(cfg.vcodec),
+        encoder_threads=1,
     )
-    env = _env_for(sim, shard.task, cfg, shard.role)
     description = sim.task_description(shard.task)
+    renderer = _renderer()
     kept, attempt, frames_total, seeds = 0, 0, 0, []
-    # Writing an episode (stats, parquet, video) overlaps with rendering the next one.
-    with ThreadPoolExecutor(max_workers=1) as writer:
-        writing = None
+
+    def start_next_attempt() -> None:
+        if attempt >= 20 * shard.num_episodes + 20:
+            raise BuildError(
+                f"The {shard.task} expert failed {attempt - kept} of {attempt} episodes; "
+                f"check the task or raise --max_episode_steps (now {cfg.max_episode_steps})."
+            )
+        renderer.submit(sim, cfg, shard.task, shard.role, shard.seed(cfg.seed, attempt))
+
+    # The renderer process rolls out the next episode while this process writes the current one (stats,
+    # parquet, video): two cores busy, where a writer thread would share the GIL with the rollout.
+    try:
+        start_next_attempt()
         while kept < shard.num_episodes:
+            frames, success = renderer.result()
             seed = shard.seed(cfg.seed, attempt)
             attempt += 1
-            if attempt > 20 * shard.num_episodes + 20:
-                raise BuildError(
-                    f"The {shard.task} expert failed {attempt - 1 - kept} of {attempt - 1} episodes; "
-                    f"check the task or raise --max_episode_steps (now {cfg.max_episode_steps})."
-                )
-            frames, success = rollout_expert(env, seed, cfg.action_bins)
+            if kept + success < shard.num_episodes:
+                start_next_attempt()
             if not success:
                 progress(shard.role, 0, 0, 1)
                 continue
-            if writing is not None:
-                writing.result()
-            writing = writer.submit(_write_episode, dataset, frames, description, with_actions)
+            _write_episode(dataset, frames, description, with_actions)
             kept += 1
             frames_total += len(frames)
             seeds.append(seed)
             progress(shard.role, 1, len(frames), 0)
-        if writing is not None:
-            writing.result()
+    except BaseException:
+        close_renderer()  # it may hold a rollout of this shard that no one will read
+        raise
     dataset.finalize()
     summary = {**asdict(shard), "attempts": attempt, "frames": frames_total, "seeds": seeds}
     (tmp / "shard.json").write_text(json.dumps(summary))
@@ -365,6 +373,79 @@ def _write_episode(dataset, frames: list[dict], task: str, with_actions: bool) -
     dataset.save_episode()
 
 
+class Renderer:
+    """Expert rollouts in a child process that keeps the current task's env: :meth:`submit` one episode,
+    :meth:`result` waits for it (errors raised in the child are raised here)."""
+
+    def __init__(self):
+        ctx = mp.get_context("spawn")  # a fresh process has no inherited GL context
+        self._conn, child_conn = ctx.Pipe()
+        self._process = ctx.Process(target=_render_loop, args=(child_conn,), daemon=True)
+        self._process.start()
+        child_conn.close()
+        self._pending = 0
+
+    def submit(self, sim: "Simulator", cfg: "BuildConfig", task: str, role: str, seed: int) -> None:
+        self._conn.send((sim, cfg, task, role, seed))
+        self._pending += 1
+
+    def result(self) -> tuple[list[dict], bool]:
+        try:
+            ok, value = self._conn.recv()
+            self._pending -= 1
+        except (EOFError, ConnectionResetError):
+            self._process.join(timeout=5)
+            raise BuildError(
+                f"The rollout process exited (exit code {self._process.exitcode}); see its messages above. "
+                'A script that calls build() needs an `if __name__ == "__main__":` guard (the process is '
+                "started with spawn, which imports the script)."
+            ) from None
+        if not ok:
+            raise value
+        return value
+
+    def close(self) -> None:
+        """Stop the process (at once when it is still rolling out an episode nobody will read)."""
+        if self._process.is_alive() and not self._pending:
+            self._conn.send(None)
+            self._process.join(timeout=30)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+        self._conn.close()
+
+
+def _render_loop(conn) -> None:
+    _worker_init()
+    try:
+        while (request := conn.recv()) is not None:
+            sim, cfg, task, role, seed = request
+            try:
+                result = (True, rollout_expert(_env_for(sim, task, cfg, role), seed, cfg.action_bins))
+            except Exception as err:  # handed to the parent, which raises it
+                result = (False, err)
+            conn.send(result)
+    except (EOFError, BrokenPipeError):
+        pass  # the parent is gone (killed): nothing left to do
+    finally:
+        close_envs()
+
+
+_RENDERER: list[Renderer] = []
+
+
+def _renderer() -> Renderer:
+    """This process's renderer, started on first use."""
+    if not _RENDERER:
+        _RENDERER.append(Renderer())
+    return _RENDERER[0]
+
+
+def close_renderer() -> None:
+    while _RENDERER:
+        _RENDERER.pop().close()
+
+
 def _record_in_worker(sim, cfg, shard, progress_queue) -> dict:
     def progress(role, episodes, frames, rejected):
         progress_queue.put((role, episodes, frames, rejected))
@@ -378,6 +459,7 @@ def _worker_init() -> None:
     import torch
 
     torch.set_num_threads(1)
+    atexit.register(close_renderer)
 
 
 class ProgressBars:
@@ -413,7 +495,7 @@ def run_shards(sim: Simulator, cfg: BuildConfig, shards: list[Shard], progress) 
         try:
             return [record_shard(sim, cfg, shard, progress) for shard in shards]
         finally:
-            close_envs()
+            close_renderer()
     ctx = mp.get_context("spawn")  # a fresh process has no inherited GL context
     with ctx.Manager() as manager:
         progress_queue = manager.Queue()

@@ -13,8 +13,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from dataset_builders import core
 from dataset_builders.core import BUILD_FILE, BuildError, build
-from dataset_builders.metaworld import MetaworldBuildConfig, main
+from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator, main
 from lerobot_jept.envs.metaworld import STATE_DIM, JeptMetaworldEnv, task_description
 from tests.conftest import SIM, TINY, load
 
@@ -184,6 +185,21 @@ def test_foreign_repo_is_not_overwritten(tmp_path):
     cfg = MetaworldBuildConfig(repo_id="test/foreign", root=str(tmp_path), **TINY)
     with pytest.raises(BuildError, match="were not built by this builder"):
         build(cfg, SIM)
+
+
+class BrokenSimulator(MetaworldSimulator):
+    """Its env cannot be made: the error happens in the builder's rollout process."""
+
+    def make_env(self, task, cfg, role="demo"):
+        raise RuntimeError(f"no env for {task} here")
+
+
+def test_rollout_process_errors_reach_the_caller(tmp_path):
+    cfg = MetaworldBuildConfig(repo_id="test/broken", root=str(tmp_path), **TINY)
+    with pytest.raises(RuntimeError, match="no env for [a-z-]+v3 here"):
+        build(cfg, BrokenSimulator())
+    assert not core._RENDERER  # the rollout process is stopped with the failed build
+    assert not (tmp_path / "test/broken_demo").exists()
 
 
 def test_missing_renderer_names_the_fix(tmp_path, monkeypatch):
