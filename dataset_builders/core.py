@@ -28,6 +28,7 @@ import multiprocessing as mp
 import os
 import queue
 import shutil
+import threading
 import time
 from collections import defaultdict
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -39,6 +40,7 @@ import numpy as np
 from lerobot_jept.discretization import snap_to_bins
 
 ROLES = ("demo", "video", "prompts")
+ROLLOUTS_AHEAD = 2  # episodes the rollout process may run ahead of the writing
 SPLITS = ("demo", "video", "unseen")
 BUILD_FILE = "jept_build.json"  # written in <work dir>/ and in every repo's meta/
 # Episode seeds: each (role, shard) owns a disjoint block of SEED_BLOCK seeds, so training episodes and
@@ -318,26 +320,31 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
     )
     description = sim.task_description(shard.task)
     renderer = _renderer()
-    kept, attempt, frames_total, seeds = 0, 0, 0, []
+    kept, attempt, submitted, frames_total, seeds = 0, 0, 0, 0, []
+    max_attempts = 20 * shard.num_episodes + 20
 
-    def start_next_attempt() -> None:
-        if attempt >= 20 * shard.num_episodes + 20:
-            raise BuildError(
-                f"The {shard.task} expert failed {attempt - kept} of {attempt} episodes; "
-                f"check the task or raise --max_episode_steps (now {cfg.max_episode_steps})."
-            )
-        renderer.submit(sim, cfg, shard.task, shard.role, shard.seed(cfg.seed, attempt))
+    def submit_ahead(needed: int) -> None:
+        """Keep up to ROLLOUTS_AHEAD attempts in flight, never more than the episodes still ``needed``."""
+        nonlocal submitted
+        while submitted - attempt < min(ROLLOUTS_AHEAD, needed) and submitted < max_attempts:
+            renderer.submit(sim, cfg, shard.task, shard.role, shard.seed(cfg.seed, submitted))
+            submitted += 1
 
-    # The renderer process rolls out the next episode while this process writes the current one (stats,
-    # parquet, video): two cores busy, where a writer thread would share the GIL with the rollout.
+    # The rollout process rolls out the next episodes while this process writes the current one (stats,
+    # parquet, video): two cores busy, where a writer thread would share the GIL with the rollout. Results
+    # come back in submission order, so the episodes are those of a sequential build.
     try:
-        start_next_attempt()
+        submit_ahead(shard.num_episodes)
         while kept < shard.num_episodes:
+            if submitted == attempt:
+                raise BuildError(
+                    f"The {shard.task} expert failed {attempt - kept} of {attempt} episodes; "
+                    f"check the task or raise --max_episode_steps (now {cfg.max_episode_steps})."
+                )
             frames, success = renderer.result()
             seed = shard.seed(cfg.seed, attempt)
             attempt += 1
-            if kept + success < shard.num_episodes:
-                start_next_attempt()
+            submit_ahead(shard.num_episodes - kept - success)
             if not success:
                 progress(shard.role, 0, 0, 1)
                 continue
@@ -347,7 +354,7 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
             seeds.append(seed)
             progress(shard.role, 1, len(frames), 0)
     except BaseException:
-        close_renderer()  # it may hold a rollout of this shard that no one will read
+        close_renderer()  # it may hold rollouts of this shard that no one will read
         raise
     dataset.finalize()
     summary = {**asdict(shard), "attempts": attempt, "frames": frames_total, "seeds": seeds}
@@ -417,6 +424,10 @@ class Renderer:
 
 def _render_loop(conn) -> None:
     _worker_init()
+    # Results are sent by a thread, so the next rollout starts while the parent is still busy writing.
+    outbox: queue.Queue = queue.Queue()
+    sender = threading.Thread(target=_send_results, args=(conn, outbox), daemon=True)
+    sender.start()
     try:
         while (request := conn.recv()) is not None:
             sim, cfg, task, role, seed = request
@@ -424,11 +435,20 @@ def _render_loop(conn) -> None:
                 result = (True, rollout_expert(_env_for(sim, task, cfg, role), seed, cfg.action_bins))
             except Exception as err:  # handed to the parent, which raises it
                 result = (False, err)
-            conn.send(result)
-    except (EOFError, BrokenPipeError):
+            outbox.put(result)
+    except EOFError:
         pass  # the parent is gone (killed): nothing left to do
     finally:
+        outbox.put(None)
         close_envs()
+
+
+def _send_results(conn, outbox: queue.Queue) -> None:
+    try:
+        while (result := outbox.get()) is not None:
+            conn.send(result)
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the parent is gone
 
 
 _RENDERER: list[Renderer] = []
