@@ -15,7 +15,9 @@ from dataset_builders.core import BuildConfig, Shard, plan_shards, rollout_exper
 def raw_frames_per_second(sim, cfg: BuildConfig, task: str, seconds: float) -> float:
     """Expert rollouts through the same env, with no dataset writing: step + render only."""
     env = sim.make_env(task, cfg)
-    env.reset(seed=0)  # envs that build their simulator lazily (robosuite) do it here, before the clock starts
+    env.reset(
+        seed=0
+    )  # envs that build their simulator lazily (robosuite) do it here, before the clock starts
     frames, start, seed = 0, time.perf_counter(), 0
     while time.perf_counter() - start < seconds:
         episode, _ = rollout_expert(env, seed, cfg.action_bins)
