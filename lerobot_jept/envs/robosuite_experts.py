@@ -56,13 +56,13 @@ class PickPlaceExpert:
 
     def __call__(self, obs: dict) -> np.ndarray:
         eef, p = obs["robot0_eef_pos"], obs[f"{self.obj}_pos"]
+        if self.phase in (3, 4, 5) and np.linalg.norm(p - eef) > 0.04:  # dropped: start again
+            self.phase = 0
+        if self.phase == self._last == 1 and self.steps_in_phase >= 25:  # blocked on the way down: grasp here
+            self.phase = 2
         if self._last != self.phase:
             self._last, self.steps_in_phase = self.phase, 0
         self.steps_in_phase += 1
-        if self.phase in (3, 4, 5) and np.linalg.norm(p - eef) > 0.04:  # dropped: start again
-            self.phase = 0
-        if self.phase == 1 and self.steps_in_phase > 25:  # blocked on the way down: grasp here
-            self.phase = 2
         yaw_error = 0.0
         if self.yaw_symmetry is not None:
             yaw_error = wrap(
@@ -155,13 +155,13 @@ class SquareExpert:
         nut_yaw, eef_yaw = yaw_of(nut_quat), yaw_of(obs["robot0_eef_quat"])
         if self.start_yaw is None:
             self.start_yaw = eef_yaw
+        if self.phase in (3, 4, 5) and np.linalg.norm(grasp - eef) > 0.05:  # dropped: start again
+            self.phase, self.nut_target_yaw = 0, None
+        if self.phase == self._last == 1 and self.steps_in_phase >= 25:  # blocked on the way down: grasp here
+            self.phase = 2
         if self._last != self.phase:
             self._last, self.steps_in_phase = self.phase, 0
         self.steps_in_phase += 1
-        if self.phase in (3, 4, 5) and np.linalg.norm(grasp - eef) > 0.05:  # dropped: start again
-            self.phase, self.nut_target_yaw = 0, None
-        if self.phase == 1 and self.steps_in_phase > 25:  # blocked on the way down: grasp here
-            self.phase = 2
         goal, gripper, turn = eef.copy(), OPEN, np.zeros(3)
         grasp_yaw_error = wrap(nut_yaw - eef_yaw, np.pi)  # fingers close across the handle
         if self.phase == 0:
