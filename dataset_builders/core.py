@@ -16,6 +16,11 @@ the shards with LeRobot's ``aggregate_datasets`` into a temporary folder that th
 rename: a repo is always absent or complete, never half written. Each shard draws its episode seeds from
 its own range, so the episodes do not depend on the number of workers or on interruptions.
 
+Processes. Each recording process (the build's own, or each of ``num_workers`` pool workers) starts one
+rollout process (:class:`Renderer`, spawned: a fresh GL context) that owns the env and runs up to
+``ROLLOUTS_AHEAD`` episodes ahead, while the recording process writes the current one with LeRobot's writer.
+Results come back in submission order, so a build's episodes do not depend on this overlap either.
+
 A simulator plugs in through :class:`Simulator` (env factory, task names, features); everything else lives
 here, once.
 """
