@@ -46,7 +46,7 @@ lint: setup
 	$(VENV)/bin/ruff format --check .
 
 test: lint
-	$(RUN) -m pytest tests
+	$(RUN) -m pytest tests --durations=15
 
 test-fast: lint
 	$(RUN) -m pytest tests -m "not slow"
