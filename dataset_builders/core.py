@@ -300,10 +300,9 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
 
     ``progress(role, episodes, frames, rejected)`` is called after every attempted episode.
     """
-    import av
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    av.logging.set_level(av.logging.ERROR)  # one line per encoded episode otherwise
+    quiet_libav()
     paths = BuildPaths(cfg)
     final = paths.shard(shard)
     tmp = final.with_name(final.name + ".tmp")
@@ -383,6 +382,15 @@ def _write_episode(dataset, frames: list[dict], task: str, with_actions: bool) -
             frame.pop("action")
         dataset.add_frame({**frame, "task": task})
     dataset.save_episode()
+
+
+def quiet_libav() -> None:
+    """Errors only from libav, also once LeRobot's encoder hands logging back to FFmpeg's own printer (which
+    otherwise prints x264's banner and statistics for every episode)."""
+    import av
+
+    av.logging.set_level(av.logging.ERROR)
+    av.logging.set_libav_level(av.logging.ERROR)
 
 
 class Renderer:
