@@ -34,7 +34,48 @@ def osc_action(
     return np.clip(np.concatenate([move, GAIN * rotation / ROT_SCALE, [gripper]]), -1.0, 1.0)
 
 
-class PickPlaceExpert:
+class GraspingExpert:
+    """What the experts share: the phase clock and the grasp. Phases 0-2 go above the grasp point (yaw
+    matched), down to it, and close; a drop in phases 3-5 starts again, and a descent blocked for 25 steps grasps
+    where it is."""
+
+    approach_height = 0.10  # above the grasp point before descending
+    descend_tolerance = 0.008  # how close in height the descent must get
+
+    def __init__(self):
+        self.phase, self.steps_in_phase, self._last = 0, 0, None
+
+    def tick(self, dropped: bool) -> bool:
+        """Advance the phase clock for one step; True when a drop restarted the approach."""
+        restarted = self.phase in (3, 4, 5) and dropped
+        if restarted:
+            self.phase = 0
+        if self.phase == self._last == 1 and self.steps_in_phase >= 25:  # blocked on the way down: grasp here
+            self.phase = 2
+        if self._last != self.phase:
+            self._last, self.steps_in_phase = self.phase, 0
+        self.steps_in_phase += 1
+        return restarted
+
+    def grasp(self, eef: np.ndarray, at: np.ndarray, yaw_error: float) -> tuple | None:
+        """``(goal, gripper, yaw turn)`` in phases 0-2, None after them."""
+        if self.phase == 0:
+            goal = at + [0, 0, self.approach_height]
+            if np.linalg.norm(goal - eef) < 0.01 and abs(yaw_error) < 0.08:
+                self.phase = 1
+            return goal, OPEN, yaw_error
+        if self.phase == 1:
+            if abs(eef[2] - at[2]) < self.descend_tolerance:
+                self.phase = 2
+            return at.copy(), OPEN, yaw_error
+        if self.phase == 2:
+            if self.steps_in_phase > 10:
+                self.phase = 3
+            return at.copy(), CLOSE, 0.0
+        return None
+
+
+class PickPlaceExpert(GraspingExpert):
     """Above the object (yaw matched up to ``yaw_symmetry``) -> descend -> close -> lift; with a ``target`` (an
     object name, or a fixed position), carry it above the target, lower it until it is ``place_height`` above,
     open and retreat."""
@@ -47,40 +88,25 @@ class PickPlaceExpert:
         yaw_symmetry: float | None = np.pi / 2,
         carry_height: float = 0.12,
     ):
+        super().__init__()
         self.obj, self.target, self.place_height, self.yaw_symmetry = obj, target, place_height, yaw_symmetry
         self.carry_height = carry_height
-        self.phase, self.steps_in_phase, self._last = 0, 0, None
 
     def target_pos(self, obs: dict) -> np.ndarray:
         return obs[f"{self.target}_pos"] if isinstance(self.target, str) else np.asarray(self.target)
 
     def __call__(self, obs: dict) -> np.ndarray:
         eef, p = obs["robot0_eef_pos"], obs[f"{self.obj}_pos"]
-        if self.phase in (3, 4, 5) and np.linalg.norm(p - eef) > 0.04:  # dropped: start again
-            self.phase = 0
-        if self.phase == self._last == 1 and self.steps_in_phase >= 25:  # blocked on the way down: grasp here
-            self.phase = 2
-        if self._last != self.phase:
-            self._last, self.steps_in_phase = self.phase, 0
-        self.steps_in_phase += 1
+        self.tick(dropped=np.linalg.norm(p - eef) > 0.04)
         yaw_error = 0.0
         if self.yaw_symmetry is not None:
             yaw_error = wrap(
                 yaw_of(obs[f"{self.obj}_quat"]) - yaw_of(obs["robot0_eef_quat"]), self.yaw_symmetry
             )
         goal, gripper, turn = eef.copy(), OPEN, 0.0
-        if self.phase == 0:
-            goal, turn = p + [0, 0, 0.10], yaw_error
-            if np.linalg.norm(goal - eef) < 0.01 and abs(yaw_error) < 0.08:
-                self.phase = 1
-        elif self.phase == 1:
-            goal, turn = p.copy(), yaw_error
-            if abs(eef[2] - goal[2]) < 0.008:
-                self.phase = 2
-        elif self.phase == 2:
-            goal, gripper = p.copy(), CLOSE
-            if self.steps_in_phase > 10:
-                self.phase = 3
+        grasping = self.grasp(eef, p, yaw_error)
+        if grasping is not None:
+            goal, gripper, turn = grasping
         elif self.phase == 3:
             gripper = CLOSE
             if self.target is None:
@@ -111,7 +137,7 @@ class PickPlaceExpert:
 SQUARE_GAINS = {"Panda": (3.0, 0.1), "Sawyer": (3.0, 0.1), "IIWA": (3.0, 0.1), "UR5e": (2.0, 0.0)}
 
 
-class SquareExpert:
+class SquareExpert(GraspingExpert):
     """NutAssemblySquare: grasp the nut across its handle, lift it, carry it level over the square peg with its
     hole centred and its handle turned away from the far side (towards the robot or sideways, so every arm stays
     in reach), lower it until the peg is inside the hole, let go and retreat.
@@ -121,11 +147,14 @@ class SquareExpert:
     of the target; a descent that jams goes back to realigning.
     """
 
+    approach_height = 0.08
+    descend_tolerance = 0.006
+
     def __init__(self, env, tolerance: float = 0.006, tilt_tolerance: float = 0.08, engage: float = 0.015):
         self.env, self.tolerance, self.tilt_tolerance, self.engage = env, tolerance, tilt_tolerance, engage
         self.gain, self.integral_gain = SQUARE_GAINS.get(env.robots[0].name, (GAIN, 0.0))
+        super().__init__()
         self.handle = env.sim.model.site_name2id(env.nuts[0].important_sites["handle"])
-        self.phase, self.steps_in_phase, self._last = 0, 0, None
         self.start_yaw, self.nut_target_yaw, self.integral = None, None, np.zeros(2)
 
     def turn_to_peg(self, nut_yaw: float, eef_yaw: float) -> float:
@@ -155,27 +184,12 @@ class SquareExpert:
         nut_yaw, eef_yaw = yaw_of(nut_quat), yaw_of(obs["robot0_eef_quat"])
         if self.start_yaw is None:
             self.start_yaw = eef_yaw
-        if self.phase in (3, 4, 5) and np.linalg.norm(grasp - eef) > 0.05:  # dropped: start again
-            self.phase, self.nut_target_yaw = 0, None
-        if self.phase == self._last == 1 and self.steps_in_phase >= 25:  # blocked on the way down: grasp here
-            self.phase = 2
-        if self._last != self.phase:
-            self._last, self.steps_in_phase = self.phase, 0
-        self.steps_in_phase += 1
+        if self.tick(dropped=np.linalg.norm(grasp - eef) > 0.05):
+            self.nut_target_yaw = None
         goal, gripper, turn = eef.copy(), OPEN, np.zeros(3)
-        grasp_yaw_error = wrap(nut_yaw - eef_yaw, np.pi)  # fingers close across the handle
-        if self.phase == 0:
-            goal, turn[2] = grasp + [0, 0, 0.08], grasp_yaw_error
-            if np.linalg.norm(goal - eef) < 0.01 and abs(grasp_yaw_error) < 0.08:
-                self.phase = 1
-        elif self.phase == 1:
-            goal, turn[2] = grasp.copy(), grasp_yaw_error
-            if abs(eef[2] - goal[2]) < 0.006:
-                self.phase = 2
-        elif self.phase == 2:
-            goal, gripper = grasp.copy(), CLOSE
-            if self.steps_in_phase > 10:
-                self.phase = 3
+        grasping = self.grasp(eef, grasp, wrap(nut_yaw - eef_yaw, np.pi))  # fingers close across the handle
+        if grasping is not None:
+            goal, gripper, turn[2] = grasping
         elif self.phase == 3:
             goal, gripper = np.array([eef[0], eef[1], peg_top + 0.08]), CLOSE
             if abs(goal[2] - eef[2]) < 0.01:
