@@ -41,6 +41,7 @@ class GraspingExpert:
 
     approach_height = 0.10  # above the grasp point before descending
     descend_tolerance = 0.008  # how close in height the descent must get
+    centre_tolerance = None  # if set, the descent pauses while the grasp point is further off than this in xy
 
     def __init__(self):
         self.phase, self.steps_in_phase, self._last = 0, 0, None
@@ -67,7 +68,10 @@ class GraspingExpert:
         if self.phase == 1:
             if abs(eef[2] - at[2]) < self.descend_tolerance:
                 self.phase = 2
-            return at.copy(), OPEN, yaw_error
+            goal = at.copy()
+            if self.centre_tolerance is not None and np.abs(at[:2] - eef[:2]).max() > self.centre_tolerance:
+                goal[2] = eef[2]
+            return goal, OPEN, yaw_error
         if self.phase == 2:
             if self.steps_in_phase > 10:
                 self.phase = 3
@@ -87,10 +91,15 @@ class PickPlaceExpert(GraspingExpert):
         place_height: float = 0.045,
         yaw_symmetry: float | None = np.pi / 2,
         carry_height: float = 0.12,
+        place_tolerance: float = 0.009,
+        centre_tolerance: float | None = None,
+        carry_while_lifting: bool = False,
     ):
         super().__init__()
+        self.centre_tolerance, self.carry_while_lifting = centre_tolerance, carry_while_lifting
         self.obj, self.target, self.place_height, self.yaw_symmetry = obj, target, place_height, yaw_symmetry
-        self.carry_height = carry_height
+        self.carry_height, self.place_tolerance = carry_height, place_tolerance
+        self.round_yaw = None
 
     def target_pos(self, obs: dict) -> np.ndarray:
         return obs[f"{self.target}_pos"] if isinstance(self.target, str) else np.asarray(self.target)
@@ -98,11 +107,14 @@ class PickPlaceExpert(GraspingExpert):
     def __call__(self, obs: dict) -> np.ndarray:
         eef, p = obs["robot0_eef_pos"], obs[f"{self.obj}_pos"]
         self.tick(dropped=np.linalg.norm(p - eef) > 0.04)
-        yaw_error = 0.0
+        eef_yaw = yaw_of(obs["robot0_eef_quat"])
         if self.yaw_symmetry is not None:
-            yaw_error = wrap(
-                yaw_of(obs[f"{self.obj}_quat"]) - yaw_of(obs["robot0_eef_quat"]), self.yaw_symmetry
-            )
+            yaw_error = wrap(yaw_of(obs[f"{self.obj}_quat"]) - eef_yaw, self.yaw_symmetry)
+        else:  # a round object. The fingers start closing along y; turned by the approach's heading, they close
+            # across the way the arm comes, and it arrives a few mm short: no finger lands on the object's rim
+            if self.round_yaw is None:
+                self.round_yaw = eef_yaw + np.arctan2(*(p - eef)[1::-1])
+            yaw_error = wrap(self.round_yaw - eef_yaw, np.pi)
         goal, gripper, turn = eef.copy(), OPEN, 0.0
         grasping = self.grasp(eef, p, yaw_error)
         if grasping is not None:
@@ -112,13 +124,16 @@ class PickPlaceExpert(GraspingExpert):
             if self.target is None:
                 goal = np.array([eef[0], eef[1], p[2] + 0.15])
             else:
-                goal = np.array([eef[0], eef[1], self.target_pos(obs)[2] + self.carry_height])
+                t = self.target_pos(obs)
+                goal = np.array([eef[0], eef[1], t[2] + self.carry_height])
+                if self.carry_while_lifting:  # diagonally: as far sideways as up, clear of walls a bin away
+                    goal[:2] = t[:2] + eef[:2] - p[:2]
                 if abs(goal[2] - eef[2]) < 0.01:
                     self.phase = 4
         elif self.phase == 4:
             gripper, t = CLOSE, self.target_pos(obs)
             goal = np.array([t[0] + eef[0] - p[0], t[1] + eef[1] - p[1], t[2] + self.carry_height])
-            if np.linalg.norm(goal[:2] - eef[:2]) < 0.009:
+            if np.linalg.norm(goal[:2] - eef[:2]) < self.place_tolerance:
                 self.phase = 5
         elif self.phase == 5:
             gripper, t = CLOSE, self.target_pos(obs)
@@ -231,9 +246,19 @@ def make_expert(manipulation: str, env=None):
     if manipulation == "stack":
         return PickPlaceExpert("cubeA", target="cubeB")
     if manipulation == "can":
-        bin_centre = env.target_bin_placements[env.object_to_id["can"]]
+        # anywhere in the can's quarter of the goal bin counts: aim for its point nearest the can, 5 cm inside
+        low = env.bin2_pos[:2] - env.bin_size[:2] / 2 * [env.object_id in (0, 2), env.object_id < 2]
+        start = env.sim.data.body_xpos[env.obj_body_id["Can"]][:2]
+        target = [*np.clip(start, low + 0.05, low + env.bin_size[:2] / 2 - 0.05), env.bin2_pos[2]]
         return PickPlaceExpert(
-            "Can", target=bin_centre, place_height=0.12, yaw_symmetry=None, carry_height=0.18
+            "Can",
+            target=np.array(target),
+            place_height=0.12,
+            yaw_symmetry=None,
+            carry_height=0.18,
+            place_tolerance=0.02,
+            centre_tolerance=0.006,
+            carry_while_lifting=True,
         )
     if manipulation == "square":
         return SquareExpert(env)
