@@ -17,7 +17,7 @@ from lerobot_jept.envs import robosuite as rs
 
 # The paper's Table 8 structure with core robosuite 1.5.2 tasks (see README): Stack prompted by each arm plus two
 # PickPlaceCan tasks are demonstrated, NutAssemblySquare prompted by each arm plus one more PickPlaceCan task are
-# video-only, Lift prompted by each arm is unseen. (The Sawyer's Can expert succeeds 4/10: sawyer-can is left out.)
+# video-only, Lift prompted by each arm is unseen.
 DEFAULT_DEMO_TASKS = [f"{arm}-stack" for arm in rs.ARMS] + ["panda-can", "ur5e-can"]
 DEFAULT_VIDEO_TASKS = [f"{arm}-square" for arm in rs.ARMS] + ["iiwa-can"]
 DEFAULT_UNSEEN_TASKS = [f"{arm}-lift" for arm in rs.ARMS]

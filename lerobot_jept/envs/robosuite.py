@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs import spec
 from lerobot_jept.envs.rendering import setup_offscreen_gl
 from lerobot_jept.envs.robosuite_experts import make_expert
@@ -166,15 +167,28 @@ class JeptRobosuiteEnv(gym.Env):
         self._steps = 0
         return self._observation(), {"is_success": False}
 
-    def step(self, action: np.ndarray):
+    def _advance(self, action: np.ndarray) -> tuple[float, bool, bool]:
+        """One control step without rendering: reward, success, truncated."""
         self._ensure_env()
         action = spec.checked_action(action, ACTION_DIM)
         self._raw_obs, reward, _, _ = self._env.step(action)
         success = bool(self._env._check_success())
         self._steps += 1
-        truncated = self._steps >= self._max_episode_steps and not success
+        return float(reward), success, self._steps >= self._max_episode_steps and not success
+
+    def step(self, action: np.ndarray):
+        reward, success, truncated = self._advance(action)
         info = {"is_success": success, "task": self.task}
-        return self._observation(), float(reward), success, truncated, info
+        return self._observation(), reward, success, truncated, info
+
+    def expert_succeeds(self, seed: int, num_bins: int = 7) -> bool:
+        """Whether the scripted expert, its actions snapped to ``num_bins`` bins, succeeds in the episode a
+        build would record from ``seed`` (same reset, steps and truncation; no frames are rendered)."""
+        self.reset(seed=seed)
+        while True:
+            _, success, truncated = self._advance(snap_to_bins(self.expert_action(), num_bins))
+            if success or truncated:
+                return success
 
     def expert_action(self) -> np.ndarray:
         """The scripted expert's continuous action for the current state."""

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from dataset_builders.core import build
+from dataset_builders.expert_rates import expert_successes
+from dataset_builders.expert_rates import main as expert_rates_main
 from dataset_builders.robosuite import RobosuiteBuildConfig, RobosuiteSimulator, main
 from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs.robosuite import ARMS, STATE_DIM, JeptRobosuiteEnv
@@ -94,17 +96,31 @@ MIN_SUCCESSES = {("iiwa", "square"): 8}
 def test_expert_succeeds_on_every_arm(arm, manipulation):
     """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes
     (80% for the IIWA's Square)."""
-    env = JeptRobosuiteEnv(f"{arm}-{manipulation}", image_size=32, embodiment="prompt")
-    successes = 0
-    for seed in range(10):
-        env.reset(seed=seed)
-        while True:
-            _, _, terminated, truncated, info = env.step(snap_to_bins(env.expert_action(), 7))
-            if terminated or truncated:
-                break
-        successes += info["is_success"]
-    env.close()
+    successes = sum(expert_successes(f"{arm}-{manipulation}", range(10)))
     assert successes >= MIN_SUCCESSES.get((arm, manipulation), 9), f"{arm}-{manipulation}: {successes}/10"
+
+
+def test_expert_success_without_frames_is_the_rendered_episode():
+    """``expert_succeeds`` (what the expert test and ``expert_rates`` measure) replays the episode that ``step``
+    records: same outcome, same length, same final state."""
+    env = JeptRobosuiteEnv("sawyer-lift", image_size=32, embodiment="prompt")
+    env.reset(seed=3)
+    while True:
+        obs, _, terminated, truncated, info = env.step(snap_to_bins(env.expert_action(), 7))
+        if terminated or truncated:
+            break
+    rendered = (info["is_success"], env._steps, obs["agent_pos"])
+    assert env.expert_succeeds(3) == rendered[0]
+    assert env._steps == rendered[1]
+    np.testing.assert_array_equal(env._state(), rendered[2])
+    env.close()
+
+
+def test_expert_rates_command(capsys):
+    expert_rates_main(["--tasks=[panda-lift]", "--episodes=2", "--seed=5"])
+    assert "expert success, seeds 5-6:\npanda-lift: 2/2" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="Unknown robosuite task 'panda-lfit'.*panda-lift"):
+        expert_rates_main(["--tasks=[panda-lfit]"])
 
 
 def test_bad_flags(tmp_path, capsys):
