@@ -386,11 +386,14 @@ def _write_episode(dataset, frames: list[dict], task: str, with_actions: bool) -
 
 def quiet_libav() -> None:
     """Errors only from libav, also once LeRobot's encoder hands logging back to FFmpeg's own printer (which
-    otherwise prints x264's banner and statistics for every episode)."""
+    otherwise prints x264's banner and statistics for every episode); no `datasets` progress bar for the map
+    that ``save_episode`` runs on every episode (the build has its own bars)."""
     import av
+    from datasets.utils.logging import disable_progress_bar
 
     av.logging.set_level(av.logging.ERROR)
     av.logging.set_libav_level(av.logging.ERROR)
+    disable_progress_bar()
 
 
 class Renderer:
