@@ -87,15 +87,16 @@ def test_same_seed_same_episode():
 
 
 EXPERT_CASES = [(arm, m) for m in ("lift", "stack", "square", "can") for arm in sorted(ARMS)]
-# The IIWA reaches the square peg with its elbow almost straight and sometimes stalls short of it (README).
-MIN_SUCCESSES = {("iiwa", "square"): 8}
+# Below 90% (README): the IIWA's Square (85% on held-out seeds: it reaches the peg at full extension) and the
+# Sawyer's Can (62% held out; 9/10 on these seeds, which it was tuned on).
+MIN_SUCCESSES = {("iiwa", "square"): 8, ("sawyer", "can"): 6}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("arm, manipulation", EXPERT_CASES)
 def test_expert_succeeds_on_every_arm(arm, manipulation):
     """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes
-    (80% for the IIWA's Square)."""
+    (except the two pairs of MIN_SUCCESSES)."""
     successes = sum(expert_successes(f"{arm}-{manipulation}", range(10)))
     assert successes >= MIN_SUCCESSES.get((arm, manipulation), 9), f"{arm}-{manipulation}: {successes}/10"
 
