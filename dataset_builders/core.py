@@ -302,7 +302,7 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    quiet_libav()
+    quiet_writer()
     paths = BuildPaths(cfg)
     final = paths.shard(shard)
     tmp = final.with_name(final.name + ".tmp")
@@ -384,7 +384,7 @@ def _write_episode(dataset, frames: list[dict], task: str, with_actions: bool) -
     dataset.save_episode()
 
 
-def quiet_libav() -> None:
+def quiet_writer() -> None:
     """Errors only from libav, also once LeRobot's encoder hands logging back to FFmpeg's own printer (which
     otherwise prints x264's banner and statistics for every episode); no `datasets` progress bar for the map
     that ``save_episode`` runs on every episode (the build has its own bars)."""

@@ -246,10 +246,11 @@ def make_expert(manipulation: str, env=None):
     if manipulation == "stack":
         return PickPlaceExpert("cubeA", target="cubeB")
     if manipulation == "can":
-        # anywhere in the can's quarter of the goal bin counts: aim for its point nearest the can, 5 cm inside
-        low = env.bin2_pos[:2] - env.bin_size[:2] / 2 * [env.object_id in (0, 2), env.object_id < 2]
+        # anywhere in the can's quarter of the goal bin counts (robosuite's target placement is its centre): aim
+        # for its point nearest the can, 5 cm inside
+        centre, quarter = env.target_bin_placements[env.object_id], env.bin_size[:2] / 4
         start = env.sim.data.body_xpos[env.obj_body_id["Can"]][:2]
-        target = [*np.clip(start, low + 0.05, low + env.bin_size[:2] / 2 - 0.05), env.bin2_pos[2]]
+        target = [*np.clip(start, centre[:2] - quarter + 0.05, centre[:2] + quarter - 0.05), centre[2]]
         return PickPlaceExpert(
             "Can",
             target=np.array(target),

@@ -9,11 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dataset_builders.core import build
+from dataset_builders.core import build, rollout_expert
 from dataset_builders.expert_rates import expert_successes
 from dataset_builders.expert_rates import main as expert_rates_main
 from dataset_builders.robosuite import RobosuiteBuildConfig, RobosuiteSimulator, main
-from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs.robosuite import ARMS, STATE_DIM, JeptRobosuiteEnv
 from tests.conftest import load
 
@@ -105,12 +104,8 @@ def test_expert_success_without_frames_is_the_rendered_episode():
     """``expert_succeeds`` (what the expert test and ``expert_rates`` measure) replays the episode that ``step``
     records: same outcome, same length, same final state."""
     env = JeptRobosuiteEnv("sawyer-lift", image_size=32, embodiment="prompt")
-    env.reset(seed=3)
-    while True:
-        obs, _, terminated, truncated, info = env.step(snap_to_bins(env.expert_action(), 7))
-        if terminated or truncated:
-            break
-    rendered = (info["is_success"], env._steps, obs["agent_pos"])
+    _, success = rollout_expert(env, 3, 7)  # the builder's rollout, frames rendered
+    rendered = (success, env._steps, env._state())
     assert env.expert_succeeds(3) == rendered[0]
     assert env._steps == rendered[1]
     np.testing.assert_array_equal(env._state(), rendered[2])
