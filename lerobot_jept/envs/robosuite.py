@@ -9,6 +9,7 @@ makes the prompt arm execute instead (to record prompt videos).
 
 import atexit
 import difflib
+import xml.etree.ElementTree as ET
 
 import gymnasium as gym
 import numpy as np
@@ -39,6 +40,10 @@ STATE_NAMES = (
     + ["eef_x", "eef_y", "eef_z", "eef_qx", "eef_qy", "eef_qz", "eef_qw", "gripper_0", "gripper_1"]
 )
 STATE_DIM = len(STATE_NAMES)
+# Contacts robosuite 1.5.2's models get wrong, per arm. The Sawyer's link 0 collision sphere rests on its base's
+# collision cylinder, and the friction holds the base joint right_j0 still (it turns 0.004 rad under 16 Nm), so
+# the arm reaches sideways only by contorting its wrist; robosuite removed the same contact from the Jaco (PR 235).
+EXCLUDED_CONTACTS = {"Sawyer": [("robot0_right_arm_base_link", "robot0_right_l0")]}
 
 
 def available_tasks() -> list[str]:
@@ -122,6 +127,10 @@ class JeptRobosuiteEnv(gym.Env):
             ignore_done=True,
             seed=0,
         )
+        if robot in EXCLUDED_CONTACTS:
+            self._env.reset_from_xml_string(
+                excluding_contacts(self._env.model.get_xml(), EXCLUDED_CONTACTS[robot])
+            )
         self._env.reset()
         self._fast_render()
         atexit.register(self.close)
@@ -200,6 +209,17 @@ class JeptRobosuiteEnv(gym.Env):
             self._env.sim._render_context_offscreen.gl_ctx.make_current()
             self._env.close()
             self._env = None
+
+
+def excluding_contacts(xml: str, body_pairs: list[tuple[str, str]]) -> str:
+    """The MJCF ``xml`` with contacts between each pair of bodies turned off."""
+    root = ET.fromstring(xml)
+    contact = root.find("contact")
+    if contact is None:
+        contact = ET.SubElement(root, "contact")
+    for body1, body2 in body_pairs:
+        ET.SubElement(contact, "exclude", body1=body1, body2=body2)
+    return ET.tostring(root, encoding="unicode")
 
 
 def observation_features(image_size: int) -> dict:

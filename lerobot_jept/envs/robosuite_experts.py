@@ -150,6 +150,11 @@ class PickPlaceExpert(GraspingExpert):
 # Gain and integral gain of the square nut's final alignment, per arm, chosen on seeded samples: the UR5e tracks
 # its target tightly; the others settle a few millimetres short of it, which the integral term removes.
 SQUARE_GAINS = {"Panda": (3.0, 0.1), "Sawyer": (3.0, 0.1), "IIWA": (3.0, 0.1), "UR5e": (2.0, 0.0)}
+# Where the nut's handle may point once it is on the peg, in quarter turns from +x (k = 0, the far side, is out of
+# every arm's reach). The IIWA, with its long Robotiq gripper, holds the nut over the peg at full extension unless
+# the handle points back at it (sideways: 6 of 40 held-out episodes stalled there).
+SQUARE_HANDLE_DIRECTIONS = {"IIWA": (2,)}
+WRIST_MARGIN = 0.2  # rad the last joint should keep from its limits after the nut is turned
 
 
 class SquareExpert(GraspingExpert):
@@ -159,7 +164,8 @@ class SquareExpert(GraspingExpert):
 
     The nut hangs from its handle and swings, so the alignment waits until the hole is within ``tolerance`` of
     the peg (the clearance is 6.75 mm) and the nut is level, with an integral term for arms that settle short
-    of the target; a descent that jams goes back to realigning.
+    of the target; a descent that jams goes back to realigning. The nut turns the way round that keeps the
+    arm's last joint in range (a turn of up to half a circle would otherwise run it into its limit).
     """
 
     approach_height = 0.08
@@ -167,20 +173,36 @@ class SquareExpert(GraspingExpert):
 
     def __init__(self, env, tolerance: float = 0.006, tilt_tolerance: float = 0.08, engage: float = 0.015):
         self.env, self.tolerance, self.tilt_tolerance, self.engage = env, tolerance, tilt_tolerance, engage
-        self.gain, self.integral_gain = SQUARE_GAINS.get(env.robots[0].name, (GAIN, 0.0))
+        robot = env.robots[0]
+        self.gain, self.integral_gain = SQUARE_GAINS.get(robot.name, (GAIN, 0.0))
+        self.handle_directions = SQUARE_HANDLE_DIRECTIONS.get(robot.name, (1, 2, 3))
         super().__init__()
         self.handle = env.sim.model.site_name2id(env.nuts[0].important_sites["handle"])
-        self.start_yaw, self.nut_target_yaw, self.integral = None, None, np.zeros(2)
+        self.wrist = env.sim.model.joint_name2id(robot.robot_joints[-1])
+        self.start_yaw, self.turn_left, self.last_nut_yaw, self.integral = None, None, None, np.zeros(2)
 
     def turn_to_peg(self, nut_yaw: float, eef_yaw: float) -> float:
-        """The nut's yaw change that lines its sides up with the peg's, its handle not pointing along +x (out of
-        reach), and leaves the gripper closest to its starting yaw (away from the wrist's joint limits). The
-        choice is kept until the nut is dropped: two equally good ones would otherwise alternate."""
-        if self.nut_target_yaw is None:
-            turns = [wrap(k * np.pi / 2 - nut_yaw, 2 * np.pi) for k in (1, 2, 3)]
+        """The nut's yaw change still to go to line its sides up with the peg's, its handle in one of the arm's
+        ``handle_directions``, leaving the gripper closest to its starting yaw (away from the wrist's joint
+        limits). The choice is kept until the nut is dropped: two equally good ones would otherwise alternate."""
+        if self.turn_left is None:
+            turns = [wrap(k * np.pi / 2 - nut_yaw, 2 * np.pi) for k in self.handle_directions]
             turn = min(turns, key=lambda turn: abs(wrap(eef_yaw + turn - self.start_yaw, 2 * np.pi)))
-            self.nut_target_yaw = nut_yaw + turn
-        return wrap(self.nut_target_yaw - nut_yaw, 2 * np.pi)
+            other_way = turn - np.sign(turn) * 2 * np.pi
+            if self.wrist_room(turn) < WRIST_MARGIN and self.wrist_room(other_way) > self.wrist_room(turn):
+                turn = other_way
+            self.turn_left, self.last_nut_yaw = turn, nut_yaw
+        self.turn_left -= wrap(nut_yaw - self.last_nut_yaw, 2 * np.pi)
+        self.last_nut_yaw = nut_yaw
+        return self.turn_left
+
+    def wrist_room(self, turn: float) -> float:
+        """How far (rad) the last joint (its axis along the gripper's, vertical) ends from its nearer limit once
+        the gripper has turned by ``turn`` about the vertical; negative: beyond it."""
+        model, data = self.env.sim.model, self.env.sim.data
+        low, high = model.jnt_range[self.wrist]
+        end = data.qpos[model.jnt_qposadr[self.wrist]] + turn * np.sign(data.xaxis[self.wrist][2])
+        return min(end - low, high - end)
 
     @staticmethod
     def levelling(nut_quat: np.ndarray) -> np.ndarray:
@@ -200,7 +222,7 @@ class SquareExpert(GraspingExpert):
         if self.start_yaw is None:
             self.start_yaw = eef_yaw
         if self.tick(dropped=np.linalg.norm(grasp - eef) > 0.05):
-            self.nut_target_yaw = None
+            self.turn_left = None
         goal, gripper, turn = eef.copy(), OPEN, np.zeros(3)
         grasping = self.grasp(eef, grasp, wrap(nut_yaw - eef_yaw, np.pi))  # fingers close across the handle
         if grasping is not None:
