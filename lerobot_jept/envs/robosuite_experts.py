@@ -152,8 +152,9 @@ class PickPlaceExpert(GraspingExpert):
 SQUARE_GAINS = {"Panda": (3.0, 0.1), "Sawyer": (3.0, 0.1), "IIWA": (3.0, 0.1), "UR5e": (2.0, 0.0)}
 # Where the nut's handle may point once it is on the peg, in quarter turns from +x (k = 0, the far side, is out of
 # every arm's reach). The IIWA, with its long Robotiq gripper, holds the nut over the peg at full extension unless
-# the handle points back at it (sideways: 6 of 40 held-out episodes stalled there).
+# the handle points back at it: with the handle sideways its elbow straightens and it stalls short of the peg.
 SQUARE_HANDLE_DIRECTIONS = {"IIWA": (2,)}
+SLIDE = 0.008  # m the fingers may slide down the handle while the nut is lowered onto the peg
 WRIST_MARGIN = 0.2  # rad the last joint should keep from its limits after the nut is turned
 
 
@@ -164,8 +165,9 @@ class SquareExpert(GraspingExpert):
 
     The nut hangs from its handle and swings, so the alignment waits until the hole is within ``tolerance`` of
     the peg (the clearance is 6.75 mm) and the nut is level, with an integral term for arms that settle short
-    of the target; a descent that jams goes back to realigning. The nut turns the way round that keeps the
-    arm's last joint in range (a turn of up to half a circle would otherwise run it into its limit).
+    of the target; a descent that jams (or lets the fingers slide down the handle) goes back to realigning.
+    An arm allowed one handle direction may have to turn the nut up to half a circle: it turns the way round
+    that keeps its last joint in range.
     """
 
     approach_height = 0.08
@@ -180,6 +182,7 @@ class SquareExpert(GraspingExpert):
         self.handle = env.sim.model.site_name2id(env.nuts[0].important_sites["handle"])
         self.wrist = env.sim.model.joint_name2id(robot.robot_joints[-1])
         self.start_yaw, self.turn_left, self.last_nut_yaw, self.integral = None, None, None, np.zeros(2)
+        self.grip_height = 0.0
 
     def turn_to_peg(self, nut_yaw: float, eef_yaw: float) -> float:
         """The nut's yaw change still to go to line its sides up with the peg's, its handle in one of the arm's
@@ -188,8 +191,8 @@ class SquareExpert(GraspingExpert):
         if self.turn_left is None:
             turns = [wrap(k * np.pi / 2 - nut_yaw, 2 * np.pi) for k in self.handle_directions]
             turn = min(turns, key=lambda turn: abs(wrap(eef_yaw + turn - self.start_yaw, 2 * np.pi)))
-            other_way = turn - np.sign(turn) * 2 * np.pi
-            if self.wrist_room(turn) < WRIST_MARGIN and self.wrist_room(other_way) > self.wrist_room(turn):
+            other_way = turn - np.sign(turn) * 2 * np.pi  # one direction: up to half a turn, either way round
+            if len(turns) == 1 and self.wrist_room(turn) < min(WRIST_MARGIN, self.wrist_room(other_way)):
                 turn = other_way
             self.turn_left, self.last_nut_yaw = turn, nut_yaw
         self.turn_left -= wrap(nut_yaw - self.last_nut_yaw, 2 * np.pi)
@@ -243,13 +246,13 @@ class SquareExpert(GraspingExpert):
                     and abs(turn[2]) < 0.1
                     and abs(goal[2] - eef[2]) < 0.01
                 ):
-                    self.phase = 5
+                    self.phase, self.grip_height = 5, eef[2] - centre[2]
             else:  # lower it, still centred and level
                 goal = np.array([*over_peg, eef[2] - 0.01])
                 if centre[2] < peg_top - self.engage:
                     self.phase = 6
-                elif self.steps_in_phase > 40:  # jammed: realign
-                    self.phase = 4
+                elif self.steps_in_phase > 40 or eef[2] - centre[2] < self.grip_height - SLIDE:
+                    self.phase = 4  # jammed (or the fingers slide down the handle of a nut stuck on the peg)
             error = goal[:2] - eef[:2]
             if np.abs(error).max() < 0.02:
                 self.integral = np.clip(self.integral + self.integral_gain * error, -0.02, 0.02)
