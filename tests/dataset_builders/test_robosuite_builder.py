@@ -101,9 +101,9 @@ def test_sawyer_base_joint_turns():
     env = JeptRobosuiteEnv("sawyer-can", image_size=32, embodiment="prompt")
     env.reset(seed=0)
     for _ in range(20):
-        env._advance(np.array([0, -1, 0, 0, 0, 0, -1], np.float32))  # sideways, towards the can's bin
-    base_joint = env._raw_obs["robot0_joint_pos"][0]
+        obs, *_ = env.step(np.array([0, -1, 0, 0, 0, 0, -1], np.float32))  # sideways, towards the can's bin
     env.close()
+    base_joint = obs["agent_pos"][0]
     assert base_joint < -0.1, base_joint
 
 
