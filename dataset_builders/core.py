@@ -439,7 +439,7 @@ class Renderer:
 
 
 def _render_loop(conn) -> None:
-    _worker_init()
+    worker_init()
     # Results are sent by a thread, so the next rollout starts while the parent is still busy writing.
     outbox: queue.Queue = queue.Queue()
     sender = threading.Thread(target=_send_results, args=(conn, outbox), daemon=True)
@@ -489,7 +489,7 @@ def _record_in_worker(sim, cfg, shard, progress_queue) -> dict:
     return record_shard(sim, cfg, shard, progress)
 
 
-def _worker_init() -> None:
+def worker_init() -> None:
     # One render/physics thread per process: the processes are the parallelism.
     os.environ.setdefault("LP_NUM_THREADS", "1")
     import torch
@@ -535,7 +535,7 @@ def run_shards(sim: Simulator, cfg: BuildConfig, shards: list[Shard], progress) 
     ctx = mp.get_context("spawn")  # a fresh process has no inherited GL context
     with ctx.Manager() as manager:
         progress_queue = manager.Queue()
-        with ProcessPoolExecutor(cfg.num_workers, mp_context=ctx, initializer=_worker_init) as pool:
+        with ProcessPoolExecutor(cfg.num_workers, mp_context=ctx, initializer=worker_init) as pool:
             pending = {pool.submit(_record_in_worker, sim, cfg, shard, progress_queue) for shard in shards}
             results = []
             while pending:

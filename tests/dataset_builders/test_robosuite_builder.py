@@ -122,8 +122,14 @@ def test_expert_success_without_frames_is_the_rendered_episode():
 def test_expert_rates_command(capsys):
     expert_rates_main(["--tasks=[panda-lift]", "--episodes=2", "--seed=5"])
     assert "expert success, seeds 5-6:\npanda-lift: 2/2" in capsys.readouterr().out
+    expert_rates_main(["--tasks=[ur5e-lift, panda-lift]", "--episodes=2", "--seed=5", "--num_workers=2"])
+    assert (
+        "expert success, seeds 5-6:\nur5e-lift: 2/2\npanda-lift: 2/2" in capsys.readouterr().out
+    )  # task order
     with pytest.raises(SystemExit, match="Unknown robosuite task 'panda-lfit'.*panda-lift"):
         expert_rates_main(["--tasks=[panda-lfit]"])
+    with pytest.raises(SystemExit, match="--num_workers=0: use 1 or more"):
+        expert_rates_main(["--num_workers=0"])
 
 
 def test_bad_flags(tmp_path, capsys):
