@@ -162,6 +162,10 @@ class JEPTConfig(PreTrainedConfig):
     phase_schedule: str = "alternate"
     phase_steps: int = 1000
     prompt_warmup_steps: int = 1000
+    prompt_align_weight: float = 1.0
+    prompt_align_temperature: float = 0.1
+    prompt_swap_weight: float = 1.0
+    prompt_swap_margin: float = 0.5
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5

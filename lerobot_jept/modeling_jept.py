@@ -74,6 +74,27 @@ def _perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
     )
 
 
+class PromptAlignment(nn.Module):
+    """Supervised contrastive alignment of prompts with trajectories (an addition to the paper, see
+    ``JEPTConfig.prompt_align_weight``): the mean E_prt token of each sample's prompt is pulled towards the mean
+    target joint embedding of every sample of the same task in the batch and pushed from the others (InfoNCE
+    with all same-task samples as positives, as in SupCon). The targets are the EMA encoder's, without
+    gradient, so only the prompt encoder and the two projections learn from it."""
+
+    def __init__(self, prompt_dim: int, joint_dim: int, dim: int = 128):
+        super().__init__()
+        self.prompt_proj = nn.Sequential(nn.LayerNorm(prompt_dim), nn.Linear(prompt_dim, dim))
+        self.traj_proj = nn.Sequential(nn.LayerNorm(joint_dim), nn.Linear(joint_dim, dim))
+
+    def forward(self, prompt: Tensor, targets: Tensor, task_ids: Tensor, temperature: float) -> Tensor:
+        """prompt (B, N_prt, D), targets (B, k, N, J), task_ids (B,) -> scalar loss."""
+        p = F.normalize(self.prompt_proj(prompt.mean(1)), dim=-1)
+        t = F.normalize(self.traj_proj(targets.mean((1, 2))), dim=-1)
+        log_prob = (p @ t.T / temperature).log_softmax(-1)
+        positive = (task_ids[:, None] == task_ids[None, :]).float()
+        return -((log_prob * positive).sum(-1) / positive.sum(-1)).mean()
+
+
 class JEPT(nn.Module):
     """The network: backbone, Psi_obs (online and EMA target), Psi_prt, Psi_pred, Gamma_obs, Gamma_act."""
 
@@ -122,11 +143,21 @@ class JEPT(nn.Module):
             ff_dim=config.action_head_ff_dim,
         )
 
+        # Prompt-trajectory alignment (config.prompt_align_weight): projections of pooled E_prt and of pooled
+        # target joint embeddings into one space, where prompts of a task meet that task's trajectories.
+        self.prompt_align = PromptAlignment(config.perceiver_dim, config.joint_embedding_dim)
+
     def phase_modules(self) -> dict[str, list[nn.Module]]:
         """Algorithm 1's two phases: the joint embedding encoder, and every other trained component."""
         return {
             "encoder": [self.encoder],
-            "others": [self.prompt_encoder, self.predictor, self.obs_head, self.action_head],
+            "others": [
+                self.prompt_encoder,
+                self.predictor,
+                self.obs_head,
+                self.action_head,
+                self.prompt_align,
+            ],
         }
 
     def backbone_tokens(self, images: Tensor) -> Tensor:
@@ -204,7 +235,7 @@ class JEPTPolicy(PreTrainedPolicy):
         cfg, m = self.config, self.model
         groups = [
             (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
-            (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+            (cfg.optimizer_lr_prompt, [m.prompt_encoder, m.prompt_align]),
             (cfg.optimizer_lr_predictor, [m.predictor, m.obs_head, m.action_head]),
         ]
         return [
@@ -263,17 +294,83 @@ class JEPTPolicy(PreTrainedPolicy):
         per_sample = loss_obs + cfg.action_loss_weight * loss_act
 
         has_label = labelled.sum((1, 2)) > 0
+        extra, extra_info = self._prompt_losses(batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok)
+        per_sample = per_sample + extra
         info = {
             "loss_obs": loss_obs.mean().item(),
             "loss_act": (loss_act.sum() / has_label.sum().clamp_min(1)).item(),
             "labelled_fraction": labelled[..., 0].mean().item(),
             "phase_encoder": float(self.phase == "encoder"),
             "prompt_on": float(prompt is not None),
+            **extra_info,
         }
         if reduction == "none":
             return per_sample, info
         loss_act_mean = (loss_act * has_label).sum() / has_label.sum().clamp_min(1)
-        return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean, info
+        return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean + extra.mean(), info
+
+    def _prompt_losses(self, batch, prompt, obs, h_in, targets, dist, frame_ok) -> tuple[Tensor, dict]:
+        """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``), per
+        sample (B,). Both train the components of Algorithm 1's second phase only, so they are computed when
+        that phase (or the joint schedule) is on and the prompt is past its warm-up."""
+        cfg, m = self.config, self.model
+        zero = dist.new_zeros(dist.shape[0])
+        if prompt is None or (self.training and self.phase == "encoder"):
+            return zero, {}
+        if cfg.prompt_align_weight == 0 and cfg.prompt_swap_weight == 0:
+            return zero, {}
+        task_ids = self._task_ids(batch, dist.shape[0], dist.device)
+        extra, info = zero, {}
+        if cfg.prompt_align_weight > 0:
+            align = m.prompt_align(prompt, targets, task_ids, cfg.prompt_align_temperature)
+            extra = extra + cfg.prompt_align_weight * align
+            info["loss_prompt_align"] = align.item()
+        if cfg.prompt_swap_weight > 0:
+            # Each sample with the prompt of the next sample of another task (none: no term for it).
+            other = task_ids[None, :] != task_ids[:, None]
+            order = (
+                torch.arange(len(task_ids), device=dist.device)[None, :]
+                - torch.arange(len(task_ids), device=dist.device)[:, None]
+            ) % len(task_ids)
+            swap_to = torch.where(other, order, len(task_ids)).argmin(-1)
+            has_other = other.any(-1).float()
+            pred_swapped, _ = m.predict(prompt[swap_to], obs, h_in)
+            dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
+            gap = ((dist_swapped - dist) * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
+            swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
+            extra = extra + cfg.prompt_swap_weight * swap
+            info["loss_prompt_swap"] = swap.mean().item()
+            info["prompt_swap_gap"] = gap.mean().item()
+        return extra, info
+
+    @staticmethod
+    def _task_ids(batch: dict, size: int, device) -> Tensor:
+        """(B,) task identity of each sample: ``task_index`` as LeRobot's dataset gives it, else ``task``."""
+        if "task_index" in batch and torch.is_tensor(batch["task_index"]):
+            return batch["task_index"].reshape(size).to(device)
+        tasks = batch.get("task")
+        if tasks is None:
+            raise KeyError(
+                "The prompt losses (prompt_align_weight, prompt_swap_weight) need each sample's task: the batch "
+                "has neither `task_index` nor `task`. Train from a LeRobotDataset, or set both weights to 0."
+            )
+        names = sorted(set(tasks))
+        return torch.tensor([names.index(t) for t in tasks], device=device)
+
+    @torch.no_grad()
+    def offline_action_logits(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Logits (B, A, bins) of a_t for the last context frame of a preprocessed training-shaped batch (k + 1
+        frames): ``control`` from the predicted h_{t+1}, as ``select_action`` chooses it; ``inverse`` from the
+        real next frame's joint embedding (the inverse dynamics alone)."""
+        cfg, m = self.config, self.model
+        k = cfg.n_obs_steps
+        tokens = m.backbone_tokens(batch[cfg.image_key])
+        obs = m.tokenize(m.encoder, tokens, batch[OBS_STATE])
+        h_in = m.encoder.temporal.context_embeddings(obs, first=1)
+        prompt = self._prompt(batch) if self.prompt_active else None
+        _, logits = m.predict(prompt, obs[:, :k], h_in)
+        z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
+        return {"control": m.action_head(z_next[:, None])[:, 0], "inverse": logits[:, -1]}
 
     def _action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
         """Bin indices (B, k, A) from the discretised ``action``; IGNORE_INDEX where NaN-marked or padded."""

@@ -94,9 +94,40 @@ def test_forward_returns_both_losses_and_labelled_fraction(policy_and_batch):
     labels[batch["action_is_pad"]] = IGNORE_INDEX
     expected = (labels != IGNORE_INDEX).all(-1).float().mean().item()
     assert 0 < expected < 1 and info["labelled_fraction"] == pytest.approx(expected)
-    assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"], rel=1e-4)
+    prompt_terms = info["loss_prompt_align"] + info["loss_prompt_swap"]  # both weights 1 by default
+    assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"] + prompt_terms, rel=1e-4)
     per_sample, _ = policy.forward(batch, reduction="none")
     assert per_sample.shape == (8,)
+
+
+def test_paper_objective_without_the_prompt_losses(tiny_build, policy_and_batch):
+    """prompt_align_weight = prompt_swap_weight = 0 is the paper's L_obs + c * L_act, and nothing else runs."""
+    *_, batch = policy_and_batch
+    policy, _, _ = build_policy(tiny_build, prompt_align_weight=0.0, prompt_swap_weight=0.0)
+    policy.eval()
+    loss, info = policy.forward(batch)
+    assert "loss_prompt_align" not in info and "loss_prompt_swap" not in info
+    assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"], rel=1e-4)
+
+
+def test_prompt_losses_train_only_the_second_phase(tiny_build, policy_and_batch):
+    """The alignment reaches the prompt encoder and its projections, never the joint embedding encoder; the
+    swap term needs a batch with two tasks, and its gap is L_obs under another task's prompt minus L_obs."""
+    *_, batch = policy_and_batch
+    policy, _, _ = build_policy(tiny_build, prompt_swap_weight=0.0)
+    policy.train()
+    _, info = policy.forward(batch)
+    m = policy.model
+    align = m.prompt_align(
+        m.encode_prompt(batch[PROMPT_VIDEO], batch.get("observation.prompt_video_mask")),
+        torch.randn(8, 4, 5, policy.config.joint_embedding_dim),
+        batch["task_index"],
+        0.1,
+    )
+    align.backward()
+    assert all(p.grad is None for p in m.encoder.parameters())
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in m.prompt_encoder.parameters())
+    assert len(set(batch["task_index"].tolist())) > 1 and info["loss_prompt_align"] > 0
 
 
 def test_unlabelled_and_padded_actions_contribute_nothing(policy_and_batch):

@@ -1,0 +1,286 @@
+"""``jept-prompt-probe``: does a checkpoint's policy follow its prompt video? Offline, on a labelled repo.
+
+Three measures, per task of a labelled LeRobotDataset that was not trained on (e.g. a build of every task of
+the split as demo tasks, with another ``--seed``):
+
+- Prompt separability. Every episode of the repo is a held-out prompt: its frames, subsampled to the policy's
+  ``max_prompt_length``, go through the prompt encoder to E_prt (N_prt x D, flattened). Reported: leave-one-out
+  nearest-centroid accuracy over tasks (each prompt against the centroid of the other prompts of its own task
+  and the centroids of the other tasks), per task and overall, and the spread (mean over dimensions of the
+  standard deviation across prompts, divided by the mean absolute value; a prompt embedding collapsed to a
+  constant has spread ~0).
+- Action accuracy. On up to ``frames_per_episode`` frames of every episode, the action-bin accuracy (whole
+  action and per dimension) of a_t for the last context frame, prompted by the task's first bank prompt (what
+  ``select_action`` does): ``control`` predicts h_{t+1} and reads the action from it (the policy);
+  ``inverse`` reads it from the real next frame's joint embedding (the inverse dynamics alone).
+- Prompt swap. The same frames prompted by a scene-mate's bank prompt (tasks whose names share their first
+  word, e.g. window-open / window-close; every other task for a repo without the builder's metadata): the
+  fraction of frames whose chosen action changes.
+
+    jept-prompt-probe --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_demo \\
+        [--prompt_repo_id=ORG/NAME_prompts] [--output_dir=outputs/probe]
+
+Writes ``prompt_probe.json`` and ``prompt_probe.md``; ``jept-eval-suite --probe_repo_id=...`` runs it too.
+"""
+
+import json
+import logging
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from lerobot_jept.prompts import subsample_indices
+
+
+@dataclass
+class ProbePolicyArg:
+    path: str = ""  # checkpoint folder (.../pretrained_model) or Hub repo id
+    device: str | None = None
+
+
+@dataclass
+class ProbeDatasetArg:
+    repo_id: str = ""  # a labelled repo of held-out episodes (every task to probe, with `action`)
+    root: str | None = None
+
+
+@dataclass
+class ProbeConfig:
+    policy: ProbePolicyArg = field(default_factory=ProbePolicyArg)
+    dataset: ProbeDatasetArg = field(default_factory=ProbeDatasetArg)
+    prompt_repo_id: str | None = None  # bank for the action measures (default: the policy's own)
+    prompt_root: str | None = None
+    frames_per_episode: int = 16
+    batch_size: int = 32
+    output_dir: Path | None = Path("outputs/prompt_probe")
+
+
+class ProbeError(ValueError):
+    pass
+
+
+def scene_key(task_name: str) -> str:
+    """Tasks that share a scene share the first word of their name (window-open / window-close,
+    button-press-topdown / button-press-topdown-wall); for robosuite names (``<arm>-<manipulation>``) the
+    manipulation."""
+    parts = task_name.split("-")
+    return parts[-1] if parts[0] in ("panda", "sawyer", "iiwa", "ur5e") else parts[0]
+
+
+def separability(embeddings: np.ndarray, labels: list[str]) -> dict:
+    """Leave-one-out nearest-centroid accuracy (overall and per task) and spread of (n, d) embeddings."""
+    x = embeddings.astype(np.float64)
+    tasks = sorted(set(labels))
+    y = np.array([tasks.index(t) for t in labels])
+    sums = np.stack([x[y == c].sum(0) for c in range(len(tasks))])
+    counts = np.array([(y == c).sum() for c in range(len(tasks))], dtype=np.float64)
+    correct = np.zeros(len(x), dtype=bool)
+    for i in range(len(x)):
+        s, n = sums.copy(), counts.copy()
+        s[y[i]] -= x[i]
+        n[y[i]] -= 1
+        valid = n > 0
+        centroids = s[valid] / n[valid, None]
+        nearest = np.flatnonzero(valid)[np.argmin(((centroids - x[i]) ** 2).sum(-1))]
+        correct[i] = nearest == y[i]
+    spread = float(x.std(0).mean() / max(np.abs(x).mean(), 1e-12))
+    return {
+        "nearest_centroid_accuracy": float(correct.mean()),
+        "per_task_accuracy": {t: float(correct[y == c].mean()) for c, t in enumerate(tasks)},
+        "spread": spread,
+        "num_prompts": len(x),
+    }
+
+
+def task_names(meta) -> dict[str, str] | None:
+    """Task string -> builder task name (from ``meta/jept_build.json``); None for a repo without one."""
+    path = Path(meta.root) / "meta/jept_build.json"
+    if not path.is_file():
+        return None
+    build = json.loads(path.read_text())
+    return {string: name for name, string in build["task_descriptions"].items()}
+
+
+def scene_mates(task_strings: list[str], names: dict[str, str] | None) -> dict[str, list[str]]:
+    """Each task string's scene-mates (by :func:`scene_key` of the builder's names); without build metadata,
+    every other task of the repo."""
+    if names is None:
+        return {t: [m for m in task_strings if m != t] for t in task_strings}
+    key = {t: scene_key(names.get(t, t)) for t in task_strings}
+    return {t: [m for m in task_strings if m != t and key[m] == key[t]] for t in task_strings}
+
+
+def load_checkpoint(cfg: ProbeConfig):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_jept.modeling_jept import JEPTPolicy
+
+    policy_cfg = PreTrainedConfig.from_pretrained(cfg.policy.path)
+    if cfg.policy.device:
+        policy_cfg.device = cfg.policy.device
+    if cfg.prompt_repo_id:
+        policy_cfg.prompt_repo_id, policy_cfg.prompt_root = cfg.prompt_repo_id, cfg.prompt_root
+    policy = JEPTPolicy.from_pretrained(cfg.policy.path, config=policy_cfg).eval()
+    overrides = {"jept_prompt_video": {"repo_id": policy_cfg.prompt_repo_id, "root": policy_cfg.prompt_root}}
+    pre, _ = make_pre_post_processors(
+        policy_cfg, pretrained_path=cfg.policy.path, preprocessor_overrides=overrides
+    )
+    return policy, pre
+
+
+@torch.no_grad()
+def prompt_embeddings(policy, dataset, progress: bool = True) -> tuple[np.ndarray, list[str]]:
+    """E_prt (flattened) of every episode of ``dataset`` used as a prompt, with each episode's task."""
+    from lerobot_jept.prompts import PromptBank
+
+    cfg = policy.config
+    bank = PromptBank(dataset.repo_id, dataset.root, cfg.max_prompt_length, cfg.image_size)
+    episodes = range(dataset.meta.total_episodes)
+    out, tasks = [], []
+    for ep in tqdm(episodes, desc="prompt embeddings", unit="prompt", disable=not progress):
+        video, mask = bank.batch([ep])
+        e_prt = policy.model.encode_prompt(video.to(policy.bin_centres.device), mask.to(video.device))
+        out.append(e_prt.flatten().cpu().numpy())
+        tasks.append(dataset.meta.episodes[ep]["tasks"][0])
+    return np.stack(out), tasks
+
+
+def probe_frames(dataset, per_episode: int) -> list[int]:
+    """Up to ``per_episode`` frame indices per episode, spread uniformly, each with a next frame."""
+    frames = []
+    for ep in range(dataset.meta.total_episodes):
+        info = dataset.meta.episodes[ep]
+        start, length = int(info["dataset_from_index"]), int(info["length"])
+        frames += [start + int(i) for i in subsample_indices(length - 1, per_episode)]
+    return frames
+
+
+@torch.no_grad()
+def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: ProbeConfig) -> dict:
+    """Per task: control / inverse action accuracy with its own bank prompt, and the swap change rate."""
+    from lerobot.utils.constants import ACTION
+
+    from lerobot_jept.modeling_jept import PROMPT_MASK, PROMPT_VIDEO
+
+    bank = pre.steps[[type(s).__name__ for s in pre.steps].index("JeptPromptVideoStep")].bank
+    by_task: dict[str, list[int]] = {}
+    for idx in probe_frames(dataset, cfg.frames_per_episode):
+        by_task.setdefault(dataset.hf_dataset[idx]["task_index"].item(), []).append(idx)
+    task_strings = list(dataset.meta.tasks.index)
+    all_mates = scene_mates(task_strings, names)
+    names = names or {}
+    results = {}
+    for task_index, indices in tqdm(sorted(by_task.items()), desc="action probe", unit="task"):
+        task = task_strings[task_index]
+        mates = [m for m in all_mates[task] if m in bank.tasks]
+        prompts = {task: bank.batch([bank.episodes(task)[0]])}
+        prompts.update({m: bank.batch([bank.episodes(m)[0]]) for m in mates})
+        stats = {"control": [], "inverse": [], "labels": []}
+        swaps = {m: [] for m in mates}
+        for start in range(0, len(indices), cfg.batch_size):
+            items = [dataset[i] for i in indices[start : start + cfg.batch_size]]
+            batch = {
+                k: torch.stack([it[k] for it in items]) for k in items[0] if torch.is_tensor(items[0][k])
+            }
+            batch["task"] = [it["task"] for it in items]
+            outputs = {}
+            for name, (video, mask) in prompts.items():
+                given = {**batch, PROMPT_VIDEO: video.expand(len(items), -1, -1, -1, -1), PROMPT_MASK: mask}
+                given[PROMPT_MASK] = mask.expand(len(items), -1)
+                processed = pre(given)
+                outputs[name] = policy.offline_action_logits(processed)
+            stats["labels"].append(processed[ACTION][:, -1].cpu())
+            for path in ("control", "inverse"):
+                stats[path].append(outputs[task][path].argmax(-1).cpu())
+            for m in mates:
+                changed = (outputs[m]["control"].argmax(-1) != outputs[task]["control"].argmax(-1)).any(-1)
+                swaps[m].append(changed.cpu())
+        labels = torch.cat(stats["labels"])
+        labelled = (labels >= 0).all(-1)
+        row = {"task": names.get(task, task), "frames": int(labelled.sum())}
+        for path in ("control", "inverse"):
+            hit = (torch.cat(stats[path]) == labels)[labelled]
+            row[f"{path}_whole"] = float(hit.all(-1).float().mean()) if len(hit) else float("nan")
+            row[f"{path}_per_dim"] = float(hit.float().mean()) if len(hit) else float("nan")
+        row["swap_changed"] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in swaps.items()}
+        results[task] = row
+    return results
+
+
+def run_probe(cfg: ProbeConfig) -> dict:
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+
+    if not cfg.policy.path or not cfg.dataset.repo_id:
+        raise ProbeError(
+            "Pass both --policy.path=CHECKPOINT and --dataset.repo_id=ORG/NAME (a labelled repo)."
+        )
+    policy, pre = load_checkpoint(cfg)
+    meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root)
+    if "action" not in meta.features:
+        raise ProbeError(
+            f"{cfg.dataset.repo_id} has no `action`: the probe needs labelled held-out episodes, e.g. a build "
+            "with every task as a demo task and another --seed (jept-build-metaworld --demo_tasks=[...])."
+        )
+    dataset = LeRobotDataset(
+        cfg.dataset.repo_id,
+        root=cfg.dataset.root,
+        delta_timestamps=resolve_delta_timestamps(policy.config, meta),
+    )
+    names = task_names(meta)
+    embeddings, prompt_tasks = prompt_embeddings(policy, dataset)
+    sep = separability(embeddings, [(names or {}).get(t, t) for t in prompt_tasks])
+    actions = action_measures(policy, pre, dataset, names, cfg)
+    results = {
+        "policy": cfg.policy.path,
+        "dataset": cfg.dataset.repo_id,
+        "prompt_bank": policy.config.prompt_repo_id,
+        "prompt_separability": sep,
+        "actions": {row["task"]: row for row in actions.values()},
+    }
+    if cfg.output_dir is not None:
+        out = Path(cfg.output_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "prompt_probe.json").write_text(json.dumps(results, indent=2))
+        (out / "prompt_probe.md").write_text(markdown(results))
+    return results
+
+
+def markdown(results: dict) -> str:
+    sep = results["prompt_separability"]
+    lines = [
+        f"Prompt embedding E_prt on {sep['num_prompts']} held-out prompts: nearest-centroid accuracy "
+        f"{sep['nearest_centroid_accuracy']:.3f}, spread {sep['spread']:.3f}",
+        "",
+        "| Task | E_prt NC acc | frames | control whole | control per-dim | inverse whole | inverse per-dim "
+        "| prompt swap changes action |",
+        "|---|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for task, row in results["actions"].items():
+        swap = ", ".join(f"{m}: {v:.2f}" for m, v in row["swap_changed"].items()) or "-"
+        lines.append(
+            f"| {task} | {sep['per_task_accuracy'].get(task, float('nan')):.2f} | {row['frames']} | "
+            f"{row['control_whole']:.3f} | {row['control_per_dim']:.3f} | {row['inverse_whole']:.3f} | "
+            f"{row['inverse_per_dim']:.3f} | {swap} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING)
+    import lerobot_policy_jept  # noqa: F401  (registers the policy and the envs)
+
+    cfg = draccus.parse(ProbeConfig)
+    try:
+        results = run_probe(cfg)
+    except ProbeError as err:
+        sys.exit(f"jept-prompt-probe: {err}")
+    print(markdown(results))
+    if cfg.output_dir is not None:
+        print(f"Wrote {cfg.output_dir}/prompt_probe.json and prompt_probe.md")
