@@ -91,6 +91,16 @@ class JEPTConfig(PreTrainedConfig):
         phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch: set frames / batch size).
         prompt_warmup_steps: steps at the start during which E_prt is excluded from the predictor (A.4; the
             paper gives no number).
+        prompt_align_weight, prompt_align_temperature: not in the paper. A supervised contrastive term that
+            pulls each sample's E_prt (mean token, projected) towards the EMA joint embeddings of every sample
+            of the same task in the batch and away from the other tasks' (InfoNCE, temperature 0.1). Without
+            it, wherever the observation already identifies the task the objective gives E_prt no reason to
+            vary, and training drives it to a constant (README, "Prompt conditioning"). 0 turns it off.
+        prompt_swap_weight, prompt_swap_margin: not in the paper. Each sample is also predicted under the
+            prompt of a sample of another task in the batch, and a hinge asks L_obs to be at least
+            ``prompt_swap_margin`` higher under the wrong prompt, so the predictor must read the prompt. Both
+            terms train only Algorithm 1's second phase (prompt encoder, predictor, heads) after the prompt
+            warm-up. Both weights 0 is the paper's objective exactly.
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's

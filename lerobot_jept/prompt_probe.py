@@ -35,24 +35,13 @@ import torch
 from tqdm import tqdm
 
 from lerobot_jept.prompts import subsample_indices
-
-
-@dataclass
-class ProbePolicyArg:
-    path: str = ""  # checkpoint folder (.../pretrained_model) or Hub repo id
-    device: str | None = None
-
-
-@dataclass
-class ProbeDatasetArg:
-    repo_id: str = ""  # a labelled repo of held-out episodes (every task to probe, with `action`)
-    root: str | None = None
+from lerobot_jept.suite import DatasetArg, PolicyArg
 
 
 @dataclass
 class ProbeConfig:
-    policy: ProbePolicyArg = field(default_factory=ProbePolicyArg)
-    dataset: ProbeDatasetArg = field(default_factory=ProbeDatasetArg)
+    policy: PolicyArg = field(default_factory=PolicyArg)
+    dataset: DatasetArg = field(default_factory=DatasetArg)  # labelled, held-out episodes
     prompt_repo_id: str | None = None  # bank for the action measures (default: the policy's own)
     prompt_root: str | None = None
     frames_per_episode: int = 16

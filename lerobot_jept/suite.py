@@ -5,7 +5,8 @@ Every demo, video and unseen task recorded in the mix repo's split metadata (``m
 evaluated with ``--env.type=jept_metaworld`` or ``jept_robosuite`` under the build's protocol (image size, action repeat, truncation)
 and prompt bank. Writes ``results.json``, ``results.md`` (Table 1's rows: T_demo average, T_vid average, each
 unseen task, seen average, unseen average) and ``results.png``, plus LeRobot's eval_info.json and videos per
-task under ``tasks/<task>/``.
+task under ``tasks/<task>/``. With ``--probe_repo_id`` (held-out labelled episodes), the results also carry
+``jept-prompt-probe``'s measures of whether the policy follows its prompt.
 
     jept-eval-suite --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_mix \\
         --n_episodes=50 --output_dir=outputs/suite
@@ -53,7 +54,7 @@ class PolicyArg:
 
 @dataclass
 class DatasetArg:
-    repo_id: str = ""  # the builder's mix repo, ORG/NAME_mix
+    repo_id: str = ""  # the suite: the builder's mix repo, ORG/NAME_mix; the probe: a labelled repo
     root: str | None = None
 
 
@@ -68,6 +69,10 @@ class SuiteConfig:
     output_dir: Path = Path("outputs/suite")
     prompt_repo_id: str | None = None  # default: the build's prompt bank
     prompt_root: str | None = None
+    # A labelled repo of held-out episodes: when given, jept-prompt-probe runs on it too and its results
+    # (E_prt separability, action accuracy, prompt swap) join results.json / results.md.
+    probe_repo_id: str | None = None
+    probe_root: str | None = None
 
 
 class SuiteError(ValueError):
@@ -217,8 +222,21 @@ def run_suite(cfg: SuiteConfig) -> dict:
         "table": rows,
         "paper_table": PAPER_TABLE1 if paper else None,
     }
-    (out / "results.json").write_text(json.dumps(results, indent=2))
     table = markdown(rows, per_task, paper)
+    if cfg.probe_repo_id:
+        from lerobot_jept.prompt_probe import ProbeConfig, run_probe
+        from lerobot_jept.prompt_probe import markdown as probe_markdown
+
+        probe = run_probe(
+            ProbeConfig(
+                PolicyArg(cfg.policy.path, cfg.policy.device),
+                DatasetArg(cfg.probe_repo_id, cfg.probe_root),
+                output_dir=out,
+            )
+        )
+        results["prompt_probe"] = probe
+        table += f"\n## Prompt probe on {cfg.probe_repo_id}\n\n" + probe_markdown(probe)
+    (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table)
     bar_chart(rows, out / "results.png", paper, TITLES[simulator])
     print(table)

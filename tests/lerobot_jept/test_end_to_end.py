@@ -132,10 +132,17 @@ def test_eval_suite_writes_table_and_chart(trained):
             "--n_episodes=1",
             "--batch_size=1",
             f"--output_dir={suite}",
+            "--probe_repo_id=test/mw_tiny_demo",
         ],
         tmp,
     )
     results = json.loads((suite / "results.json").read_text())
+    probe = results["prompt_probe"]
+    assert probe["prompt_separability"]["num_prompts"] == 6  # every episode of the labelled repo
+    assert set(probe["actions"]) == {"button-press-v3", "reach-v3"}
+    assert all(0 <= row["control_whole"] <= row["control_per_dim"] <= 1 for row in probe["actions"].values())
+    assert "Prompt embedding E_prt" in (suite / "results.md").read_text()
+    assert (suite / "prompt_probe.json").is_file()
     assert set(results["per_task"]) == {"button-press-v3", "reach-v3", "drawer-close-v3", "handle-press-v3"}
     assert list(results["table"]) == ["T_demo", "T_vid", "handle-press-v3", "Seen average", "Unseen average"]
     assert all(0 <= v <= 100 for v in results["table"].values())
@@ -206,3 +213,19 @@ def test_stock_metaworld_env_gets_a_clear_message(trained):
     }
     with pytest.raises(ValueError, match=r"observation.state.*18.*jept_metaworld"):
         policy.select_action(batch)
+
+
+def test_prompt_probe_needs_a_labelled_repo(trained):
+    tmp, out, _ = trained
+    proc = subprocess.run(
+        [
+            str(BIN / "jept-prompt-probe"),
+            f"--policy.path={out}/checkpoints/last/pretrained_model",
+            "--dataset.repo_id=test/mw_tiny_video",
+        ],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode != 0
+    assert "has no `action`" in proc.stderr and "--demo_tasks" in proc.stderr

@@ -18,13 +18,12 @@ from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_jept import JEPTConfig
 from lerobot_jept.prompt_probe import (
     ProbeConfig,
-    ProbeDatasetArg,
-    ProbePolicyArg,
     prompt_embeddings,
     run_probe,
     scene_key,
     separability,
 )
+from lerobot_jept.suite import DatasetArg, PolicyArg
 
 SIZE, LENGTH = 32, 12
 TASKS = {"move the square left": -1, "move the square right": 1}
@@ -135,7 +134,7 @@ def test_prompt_separates_two_tasks_of_one_scene(one_scene, tmp_path):
     policy.save_pretrained(path)
     for processor in make_pre_post_processors(cfg, dataset_stats=LeRobotDatasetMetadata(repo).stats):
         processor.save_pretrained(path)
-    probe_cfg = ProbeConfig(ProbePolicyArg(str(path)), ProbeDatasetArg(probe), output_dir=None)
+    probe_cfg = ProbeConfig(PolicyArg(str(path)), DatasetArg(probe), output_dir=None)
     results = run_probe(probe_cfg)
     rows = results["actions"]
     print({task: row["swap_changed"] for task, row in rows.items()})
