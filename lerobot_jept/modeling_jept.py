@@ -267,11 +267,9 @@ class JEPTPolicy(PreTrainedPolicy):
         cfg, m = self.config, self.model
         if self.training:
             self._apply_phase()
-        images, state = batch[cfg.image_key], batch[OBS_STATE]  # (B, k+1, 3, H, W), (B, k+1, S)
+        state = batch[OBS_STATE]  # (B, k+1, S)
         k = cfg.n_obs_steps
-        tokens = m.backbone_tokens(images)
-        obs = m.tokenize(m.encoder, tokens, state)
-        h_in = m.encoder.temporal.context_embeddings(obs, first=1)
+        tokens, obs, h_in = self._encode_window(batch)
         with torch.no_grad():
             target_obs = m.tokenize(m.target_encoder, tokens.detach(), state)
             targets = m.target_encoder.temporal.context_embeddings(target_obs, first=1)
@@ -282,7 +280,7 @@ class JEPTPolicy(PreTrainedPolicy):
         dist = torch.linalg.vector_norm(pred_h - targets, dim=-1).mean(-1)  # (B, k)
         pad = batch.get(f"{cfg.image_key}_is_pad")
         frame_ok = torch.ones_like(dist) if pad is None else (~pad[:, 1:]).float()
-        loss_obs = (dist * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
+        loss_obs = _frame_mean(dist, frame_ok)
 
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
         labels = self._action_labels(batch, logits.shape[:3])
@@ -328,15 +326,13 @@ class JEPTPolicy(PreTrainedPolicy):
         if cfg.prompt_swap_weight > 0:
             # Each sample with the prompt of the next sample of another task (none: no term for it).
             other = task_ids[None, :] != task_ids[:, None]
-            order = (
-                torch.arange(len(task_ids), device=dist.device)[None, :]
-                - torch.arange(len(task_ids), device=dist.device)[:, None]
-            ) % len(task_ids)
-            swap_to = torch.where(other, order, len(task_ids)).argmin(-1)
+            n = len(task_ids)
+            steps = torch.arange(n, device=dist.device)
+            swap_to = torch.where(other, (steps[None, :] - steps[:, None]) % n, n).argmin(-1)
             has_other = other.any(-1).float()
             pred_swapped, _ = m.predict(prompt[swap_to], obs, h_in)
             dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
-            gap = ((dist_swapped - dist) * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
+            gap = _frame_mean(dist_swapped - dist, frame_ok)
             swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
             extra = extra + cfg.prompt_swap_weight * swap
             info["loss_prompt_swap"] = swap.mean().item()
@@ -362,15 +358,20 @@ class JEPTPolicy(PreTrainedPolicy):
         """Logits (B, A, bins) of a_t for the last context frame of a preprocessed training-shaped batch (k + 1
         frames): ``control`` from the predicted h_{t+1}, as ``select_action`` chooses it; ``inverse`` from the
         real next frame's joint embedding (the inverse dynamics alone)."""
-        cfg, m = self.config, self.model
-        k = cfg.n_obs_steps
-        tokens = m.backbone_tokens(batch[cfg.image_key])
-        obs = m.tokenize(m.encoder, tokens, batch[OBS_STATE])
-        h_in = m.encoder.temporal.context_embeddings(obs, first=1)
+        m, k = self.model, self.config.n_obs_steps
+        _, obs, h_in = self._encode_window(batch)
         prompt = self._prompt(batch) if self.prompt_active else None
         _, logits = m.predict(prompt, obs[:, :k], h_in)
         z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
         return {"control": m.action_head(z_next[:, None])[:, 0], "inverse": logits[:, -1]}
+
+    def _encode_window(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """A training-shaped window (k + 1 frames) -> backbone tokens, observation tokens and the predictor's
+        joint embedding inputs h_2..h_{k+1} (each frame encoded over the frames up to it)."""
+        m = self.model
+        tokens = m.backbone_tokens(batch[self.config.image_key])
+        obs = m.tokenize(m.encoder, tokens, batch[OBS_STATE])
+        return tokens, obs, m.encoder.temporal.context_embeddings(obs, first=1)
 
     def _action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
         """Bin indices (B, k, A) from the discretised ``action``; IGNORE_INDEX where NaN-marked or padded."""
@@ -490,6 +491,11 @@ class JEPTPolicy(PreTrainedPolicy):
         images = torch.stack([f[0] for f in self._frames], 1)
         states = torch.stack([f[1] for f in self._frames], 1)
         return m.tokenize(m.encoder, m.backbone_tokens(images), states)
+
+
+def _frame_mean(values: Tensor, frame_ok: Tensor) -> Tensor:
+    """(B, k) per-frame values -> (B,) their mean over the frames whose target is real."""
+    return (values * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
 
 
 def jept_card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) -> str:
