@@ -1,25 +1,28 @@
-"""The video-conditioned causal predictor Psi_pred and its heads Gamma_obs, Gamma_act (Section 3.2.2)."""
+"""The video-conditioned causal predictor Psi_pred and its heads Gamma_obs, Gamma_act (Section 3.2.2), and DT*'s
+transformer (the predictor without the joint embedding tokens)."""
 
 import torch
 from einops import rearrange, repeat
 from torch import Tensor, nn
 
 from lerobot_jept.components.attention import CrossAttentionBlock, SelfAttentionStack, StepPositions
-from lerobot_jept.components.token_groups import attention_mask, group_slices, jept_groups
+from lerobot_jept.components.token_groups import (
+    DT_STAR_RULES,
+    TokenGroup,
+    attention_mask,
+    dt_star_groups,
+    group_slices,
+    jept_groups,
+)
 
 
-class CausalPredictor(nn.Module):
-    """``Z = Psi_pred(E_prt, o_1, h_2, ..., o_k, h_{k+1})`` with the block-causal mask of the paper.
-
-    Inputs: prompt (B, N_prt, D_in) or None (warm-up), obs tokens (B, k, N_obs, D_in), joint embeddings
-    (B, k, N_obs, joint_dim) for h_2..h_{k+1}. Returns the hidden states of the obs and emb tokens,
-    each (B, k, N_obs, width).
-    """
+class PromptedSequence(nn.Module):
+    """What Psi_pred and DT*'s transformer share: input projections of the prompt and observation tokens, one
+    type embedding per token kind (prompt, obs[, emb]), step positions and the Transformer stack."""
 
     def __init__(
         self,
         obs_dim: int,
-        joint_dim: int,
         width: int,
         heads: int,
         ff_dim: int,
@@ -27,21 +30,59 @@ class CausalPredictor(nn.Module):
         dropout: float,
         max_steps: int,
         tokens_per_step: int,
+        num_kinds: int,
     ):
         super().__init__()
         self.prompt_in = nn.Linear(obs_dim, width)
         self.obs_in = nn.Linear(obs_dim, width)
-        self.emb_in = nn.Linear(joint_dim, width)
-        self.type_embed = nn.Parameter(torch.randn(3, width) * 0.02)  # prompt, obs, emb
+        self.type_embed = nn.Parameter(torch.randn(num_kinds, width) * 0.02)
         self.positions = StepPositions(max_steps, tokens_per_step, width)
         self.transformer = SelfAttentionStack(width, heads, ff_dim, layers, dropout)
 
+    def _obs_tokens(self, obs: Tensor) -> Tensor:
+        """(B, k, N, D_in) -> (B, k, N, width) with step positions and the obs type."""
+        return self.obs_in(obs) + self.positions(obs.shape[1]) + self.type_embed[1]
+
+    def _with_prompt(self, prompt: Tensor | None, seq: Tensor, groups: list) -> tuple[Tensor, list]:
+        """Prepend the prompt group (none during the warm-up)."""
+        if prompt is None:
+            return seq, groups
+        seq = torch.cat([self.prompt_in(prompt) + self.type_embed[0], seq], dim=1)
+        return seq, [TokenGroup("prompt", prompt.shape[1]), *groups]
+
+
+class DTStarTransformer(PromptedSequence):
+    """DT*: ``[E_prt | o_1, ..., o_k]`` under ``DT_STAR_RULES`` -> hidden states of the obs tokens (B, k, N,
+    width). JEPT's predictor with the joint embedding prediction removed."""
+
+    def __init__(self, obs_dim: int, width: int, **kwargs):
+        super().__init__(obs_dim, width, num_kinds=2, **kwargs)
+
+    def forward(self, prompt: Tensor | None, obs: Tensor) -> Tensor:
+        k, n = obs.shape[1], obs.shape[2]
+        seq = rearrange(self._obs_tokens(obs), "b k n d -> b (k n) d")
+        seq, groups = self._with_prompt(prompt, seq, dt_star_groups(0, k, n))
+        z = self.transformer(seq, mask=attention_mask(groups, DT_STAR_RULES).to(seq.device))
+        return torch.stack([z[:, s] for s in group_slices(groups, "obs")], dim=1)
+
+
+class CausalPredictor(PromptedSequence):
+    """``Z = Psi_pred(E_prt, o_1, h_2, ..., o_k, h_{k+1})`` with the block-causal mask of the paper.
+
+    Inputs: prompt (B, N_prt, D_in) or None (warm-up), obs tokens (B, k, N_obs, D_in), joint embeddings
+    (B, k, N_obs, joint_dim) for h_2..h_{k+1}. Returns the hidden states of the obs and emb tokens,
+    each (B, k, N_obs, width).
+    """
+
+    def __init__(self, obs_dim: int, joint_dim: int, width: int, **kwargs):
+        super().__init__(obs_dim, width, num_kinds=3, **kwargs)
+        self.emb_in = nn.Linear(joint_dim, width)
+
     def _sequence(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, list]:
         """Input tokens and groups; ``emb`` may lack the last step (k - 1 embeddings): its group is left out."""
-        b, k, n, _ = obs.shape
-        step = self.positions(k)
-        o = self.obs_in(obs) + step + self.type_embed[1]
-        h = self.emb_in(emb) + step[: emb.shape[1]] + self.type_embed[2]
+        k, n = obs.shape[1], obs.shape[2]
+        o = self._obs_tokens(obs)
+        h = self.emb_in(emb) + self.positions(k)[: emb.shape[1]] + self.type_embed[2]
         missing = k - emb.shape[1]
         if missing:
             h = torch.cat([h, torch.zeros_like(o[:, -missing:])], dim=1)
@@ -49,10 +90,7 @@ class CausalPredictor(nn.Module):
         groups = jept_groups(0, k, n)
         if missing:
             seq, groups = seq[:, :-n], groups[:-1]
-        if prompt is not None:
-            seq = torch.cat([self.prompt_in(prompt) + self.type_embed[0], seq], dim=1)
-            groups = jept_groups(prompt.shape[1], 0, n) + groups
-        return seq, groups
+        return self._with_prompt(prompt, seq, groups)
 
     def forward(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
         seq, groups = self._sequence(prompt, obs, emb)

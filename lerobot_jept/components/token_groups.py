@@ -4,7 +4,8 @@ The sequence is ``[E_prt | o_{t-k+1}, h_{t-k+2}, ..., o_t, h_{t+1}]`` (paper, eq
 of tokens of one item (the prompt, one observation, one joint embedding). The paper's rule (Appendix A.2):
 a token attends to every token of a preceding group and to the tokens of its own group, never to a later
 group. Rules are declared per (query kind, key kind) pair, in the style of Octo's block transformer, so a
-variant (e.g. DT*'s action tokens) is a new rule set, not new index arithmetic.
+variant is a new rule set, not new index arithmetic: DT* (``dt_star``) drops the joint embedding tokens,
+``[E_prt | o_{t-k+1}, ..., o_t]``, and its rule set never lets a token see an ``emb`` group.
 """
 
 from dataclasses import dataclass
@@ -29,6 +30,18 @@ class TokenGroup:
 JEPT_RULES: dict[tuple[str, str], Attend] = {
     (q, k): Attend.CAUSAL for q in ("prompt", "obs", "emb") for k in ("prompt", "obs", "emb")
 }
+
+
+# DT*: JEPT without the joint embedding prediction. Prompt and observation tokens, block-causal; no emb tokens.
+DT_STAR_RULES: dict[tuple[str, str], Attend] = {
+    (q, k): Attend.CAUSAL for q in ("prompt", "obs") for k in ("prompt", "obs")
+}
+
+
+def dt_star_groups(num_prompt_tokens: int, num_steps: int, tokens_per_step: int) -> list[TokenGroup]:
+    """``[prompt | obs_1, obs_2, ..., obs_k]``; no prompt group when 0 tokens."""
+    groups = [TokenGroup("prompt", num_prompt_tokens)] if num_prompt_tokens else []
+    return groups + [TokenGroup("obs", tokens_per_step) for _ in range(num_steps)]
 
 
 def jept_groups(num_prompt_tokens: int, num_steps: int, tokens_per_step: int) -> list[TokenGroup]:

@@ -1,0 +1,326 @@
+"""What JEPT and its baselines (``dt_star``, ``vid2robot``, ``idm``) share, robomimic-style: one base network with
+the frozen-or-trained spatial backbone and the prompt path, builders for the parts the paper shares between them
+(single-frame Perceiver tokenizer, prompt video encoder, action head), and one base policy with the action bins,
+the masked action loss, the prompt lookup, the per-frame token cache of control and LeRobot's Hub hooks.
+"""
+
+import json
+from collections import deque
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from einops import rearrange
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import ACTION, OBS_STATE
+from torch import Tensor, nn
+
+from lerobot_jept.components.backbone import SpatialBackbone
+from lerobot_jept.components.encoders import ObservationTokenizer, PromptVideoEncoder
+from lerobot_jept.components.predictor import ActionHead
+from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
+from lerobot_jept.discretization import bin_centres
+
+PROMPT_VIDEO = "observation.prompt_video"
+PROMPT_MASK = "observation.prompt_video_mask"
+IGNORE_INDEX = -100  # action labels that take no part in the action loss (NaN-marked or padded)
+
+
+def transformer_kwargs(config: JEPTConfig, which: str) -> dict:
+    """Self-attention stack sizes of the ``temporal`` encoder or the causal ``predictor`` (Table 5)."""
+    return {name: getattr(config, f"{which}_{name}") for name in ("heads", "ff_dim", "layers", "dropout")}
+
+
+def perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
+    """Perceiver-IO arguments: the shared structure plus the ``frame_`` or ``prompt_`` sizes of Table 5."""
+    return dict(
+        num_latents=getattr(config, f"{which}_perceiver_latents"),
+        num_queries=getattr(config, f"{which}_perceiver_queries"),
+        ff_dim=getattr(config, f"{which}_perceiver_ff_dim"),
+        dropout=getattr(config, f"{which}_perceiver_dropout"),
+        heads=config.perceiver_heads,
+        encoder_cross_layers=config.perceiver_encoder_cross_layers,
+        encoder_self_layers=config.perceiver_encoder_self_layers,
+        decoder_cross_layers=config.perceiver_decoder_cross_layers,
+    )
+
+
+def make_backbone(config: JEPTConfig) -> SpatialBackbone:
+    return SpatialBackbone(
+        config.vision_backbone,
+        config.pretrained_backbone,
+        config.freeze_backbone,
+        config.image_size,
+        config.backbone_weights_path,
+    )
+
+
+def make_tokenizer(config: JEPTConfig, backbone_dim: int) -> ObservationTokenizer:
+    """The single-timestep encoder: per-frame Perceiver-IO + self-state token (N_obs = queries + 1)."""
+    state_dim = config.input_features[OBS_STATE].shape[0]
+    return ObservationTokenizer(
+        backbone_dim, state_dim, perceiver=perceiver_kwargs(config, "frame"), dim=config.perceiver_dim
+    )
+
+
+def make_prompt_encoder(config: JEPTConfig, backbone_dim: int) -> PromptVideoEncoder:
+    return PromptVideoEncoder(
+        backbone_dim,
+        frame_perceiver=perceiver_kwargs(config, "frame"),
+        video_perceiver=perceiver_kwargs(config, "prompt"),
+        dim=config.perceiver_dim,
+        max_frames=config.max_prompt_length,
+    )
+
+
+def make_action_head(config: JEPTConfig, width: int) -> ActionHead:
+    return ActionHead(
+        width,
+        config.resolved_action_dim,
+        config.num_action_bins,
+        dim=config.action_head_dim,
+        heads=config.action_head_heads,
+        layers=config.action_head_layers,
+        ff_dim=config.action_head_ff_dim,
+    )
+
+
+class VisualPolicyNet(nn.Module):
+    """Base of the networks. Subclasses set ``backbone`` (a :class:`SpatialBackbone`) and, when they take a
+    prompt, ``prompt_encoder``; :meth:`frame_tokens` is how they turn frames into observation tokens."""
+
+    config: JEPTConfig
+    backbone: SpatialBackbone
+
+    def backbone_tokens(self, images: Tensor) -> Tensor:
+        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution."""
+        lead = images.shape[:-3]
+        flat = images.reshape(-1, *images.shape[-3:])
+        size = self.config.image_size
+        if flat.shape[-2:] != (size, size):
+            flat = F.interpolate(
+                flat, size=(size, size), mode="bilinear", antialias=True, align_corners=False
+            )
+        tokens = self.backbone(flat)
+        return tokens.reshape(*lead, *tokens.shape[1:])
+
+    @staticmethod
+    def tokenize(tokenizer: ObservationTokenizer, tokens: Tensor, state: Tensor) -> Tensor:
+        """Backbone tokens (B, T, P, C) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
+        b = tokens.shape[0]
+        obs = tokenizer(rearrange(tokens, "b t p c -> (b t) p c"), rearrange(state, "b t s -> (b t) s"))
+        return rearrange(obs, "(b t) n d -> b t n d", b=b)
+
+    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
+        """Frames (B, T, 3, H, W) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
+        raise NotImplementedError
+
+    def encode_prompt(self, video: Tensor, mask: Tensor | None) -> Tensor:
+        """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D). Only the Perceivers learn from prompts
+        (Appendix A.2): the backbone sees them without gradient, even when it is trained on observations."""
+        with torch.no_grad():
+            tokens = self.backbone_tokens(video)
+        return self.prompt_encoder(tokens, mask)
+
+
+class DiscreteActionPolicy(PreTrainedPolicy):
+    """Base policy: actions classified into ``num_action_bins`` bins per dimension (the preprocessor's
+    ``jept_action_bins`` gives the labels, ``select_action`` returns bin centres), a step counter that LeRobot
+    advances through ``update()``, the prompt from the batch, and the checkpoint and Hub behaviour."""
+
+    config_class = JEPTConfig  # every subclass sets its own (LeRobot requires both on every class)
+    name = "discrete_action_policy"
+
+    def __init__(self, config: JEPTConfig, model: VisualPolicyNet):
+        super().__init__(config)
+        self.config = config
+        self.model = model
+        # Optimizer steps taken; persistent so a resumed run continues any step-driven schedule.
+        self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
+        centres = bin_centres(config.num_action_bins, config.action_low, config.action_high)
+        self.register_buffer("bin_centres", torch.as_tensor(centres, dtype=torch.float32), persistent=False)
+        self.reset()
+
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, *args, **kwargs):
+        """LeRobot's loading (safetensors only), with a version mismatch raised as itself, not as the config
+        parser's wrapper around it."""
+        try:
+            return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
+        except Exception as err:
+            cause = err
+            while cause is not None and not isinstance(cause, PluginVersionError):
+                cause = cause.__cause__
+            if cause is None:
+                raise
+            raise cause from None
+
+    # Training ---------------------------------------------------------------------------------------------
+
+    def update(self) -> None:
+        """After every optimizer step: count it."""
+        self.num_updates += 1
+
+    def action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
+        """Bin indices (B, T, A) from the discretised ``action``; IGNORE_INDEX where NaN-marked or padded."""
+        actions = batch.get(ACTION)
+        if actions is None:  # a dataset without actions: no action loss
+            return torch.full(shape, IGNORE_INDEX, dtype=torch.long, device=self.bin_centres.device)
+        if actions.is_floating_point():
+            raise ValueError(
+                f"{self.name} expects `action` as bin indices from its preprocessor (jept_action_bins). Pass "
+                "batches through the policy's preprocessor (make_pre_post_processors) before policy.forward."
+            )
+        labels = actions.reshape(shape).clone()
+        pad = batch.get(f"{ACTION}_is_pad")
+        if pad is not None:
+            labels[pad.reshape(shape[:2])] = IGNORE_INDEX
+        labels[(labels == IGNORE_INDEX).any(-1)] = IGNORE_INDEX  # a frame is labelled in full or not at all
+        return labels
+
+    def action_loss(self, logits: Tensor, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """Cross-entropy over the bins of logits (B, T, A, bins) on labelled frames only (eq. 8) -> per-sample
+        loss (B,) (mean over the sample's labelled frames, 0 without any) and the labelled mask (B, T, A)."""
+        labels = self.action_labels(batch, logits.shape[:3])
+        ce = F.cross_entropy(
+            rearrange(logits, "b t a c -> b c t a"), labels, ignore_index=IGNORE_INDEX, reduction="none"
+        )
+        labelled = (labels != IGNORE_INDEX).float()
+        return (ce * labelled).sum((1, 2)) / labelled.sum((1, 2)).clamp_min(1), labelled
+
+    @staticmethod
+    def labelled_mean(loss: Tensor, labelled: Tensor) -> Tensor:
+        """Mean of per-sample action losses (B,) over the samples with at least one labelled frame."""
+        has_label = (labelled.sum((1, 2)) > 0).float()
+        return (loss * has_label).sum() / has_label.sum().clamp_min(1)
+
+    def prompt(self, batch: dict[str, Tensor]) -> Tensor:
+        if PROMPT_VIDEO not in batch:
+            raise KeyError(
+                f"{self.name} needs a prompt video: the batch has no {PROMPT_VIDEO!r}. Set "
+                "--policy.prompt_repo_id to a prompt bank (the builder's ORG/NAME_prompts) or pass the prompt "
+                "video as an observation."
+            )
+        return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK))
+
+    # Hub -------------------------------------------------------------------------------------------------
+
+    def push_model_to_hub(self, cfg, *args, **kwargs):
+        """LeRobot's push. A failure (no network, bad token) ends the run with one line and keeps every local
+        file: lerobot-train saves the checkpoints before it pushes."""
+        try:
+            return super().push_model_to_hub(cfg, *args, **kwargs)
+        except Exception as err:  # whatever the Hub client raises
+            reason = str(err).strip().splitlines()[0] if str(err).strip() else ""
+            raise SystemExit(
+                f"Pushing the policy to {self.config.repo_id} failed ({type(err).__name__}: {reason}). The "
+                f"checkpoints under {cfg.output_dir} are intact; log in (`hf auth login`) and upload one with "
+                f"`hf upload {self.config.repo_id} {cfg.output_dir}/checkpoints/last/pretrained_model`."
+            ) from err
+
+    def generate_model_card(self, dataset_repo_id, model_type, license, tags, cfg=None, dataset_meta=None):
+        card = super().generate_model_card(dataset_repo_id, model_type, license, tags, cfg, dataset_meta)
+        card.text += card_section(self.config, dataset_repo_id, dataset_meta)
+        return card
+
+    # Control ----------------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Start of an episode: forget the context and the prompt encoding."""
+        self._obs_tokens: deque[Tensor] = deque(maxlen=self.config.n_obs_steps)
+        self._frames: deque[tuple[Tensor, Tensor]] = deque(maxlen=self.config.n_obs_steps)
+        self._prompt_cache: Tensor | None = None
+        self._prompt_cached = False
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """(B, 1, action_dim): the action of the current step as a one-step chunk."""
+        return self.select_action(batch)[:, None]
+
+    def episode_prompt(self, batch: dict[str, Tensor], active: bool = True) -> Tensor | None:
+        """The prompt encoding of the episode, computed on its first control step (the inputs are checked
+        then) and reused until ``reset``; None when ``active`` is False (JEPT's prompt warm-up)."""
+        if not self._prompt_cached:
+            self.check_inputs(batch)
+            self._prompt_cache = self.prompt(batch) if active else None
+            self._prompt_cached = True
+        return self._prompt_cache
+
+    def check_inputs(self, batch: dict[str, Tensor]) -> None:
+        """Observations from another env (e.g. the stock ``metaworld`` one) fail here with what differs."""
+        cfg = self.config
+        hint = (
+            "This checkpoint was trained on JEPT Meta-World data: evaluate it with --env.type=jept_metaworld "
+            "(the builder's observations), or give it observations of the shapes it was trained on."
+        )
+        for key in (cfg.image_key, OBS_STATE):
+            if key not in batch:
+                raise ValueError(f"The policy needs {key!r} but the observation has {sorted(batch)}. {hint}")
+        expected, got = cfg.input_features[OBS_STATE].shape, tuple(batch[OBS_STATE].shape[1:])
+        if tuple(expected) != got:
+            raise ValueError(
+                f"The env gives observation.state of shape {got} but the policy was trained on {tuple(expected)} "
+                f"(the 18-D Sawyer self-state: joint angles, joint velocities, hand position, gripper). {hint}"
+            )
+        if batch[cfg.image_key].shape[1] != 3:
+            raise ValueError(
+                f"{cfg.image_key} must be (B, 3, H, W), got {tuple(batch[cfg.image_key].shape)}."
+            )
+
+    def context_tokens(self, image: Tensor, state: Tensor) -> Tensor:
+        """Observation tokens of the last k frames (B, k, N, D); the first frame fills the context at the start
+        of an episode, as LeRobot's frame clamping does in training. With ``cache_frame_tokens`` only the new
+        frame is encoded; otherwise the whole context is, every step (the reference)."""
+        m, k = self.model, self.config.n_obs_steps
+        if self.config.cache_frame_tokens:
+            new = m.frame_tokens(image[:, None], state[:, None])[:, 0]
+            self._obs_tokens.extend([new] * (k - len(self._obs_tokens)) if not self._obs_tokens else [new])
+            return torch.stack(list(self._obs_tokens), dim=1)
+        self._frames.extend([(image, state)] * (k if not self._frames else 1))
+        images = torch.stack([f[0] for f in self._frames], 1)
+        states = torch.stack([f[1] for f in self._frames], 1)
+        return m.frame_tokens(images, states)
+
+
+def frame_mean(values: Tensor, frame_ok: Tensor) -> Tensor:
+    """(B, k) per-frame values -> (B,) their mean over the frames whose target is real."""
+    return (values * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
+
+
+def card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) -> str:
+    """Model card text: training data, prompt bank, task split and how to evaluate the checkpoint."""
+    split, protocol = {}, {}
+    if dataset_meta is not None and (Path(dataset_meta.root) / "meta/jept_build.json").is_file():
+        build = json.loads((Path(dataset_meta.root) / "meta/jept_build.json").read_text())
+        split, protocol = build.get("split", {}), build.get("protocol", {})
+    title = "JEPT" if config.type == "jept" else f"{config.type} (a JEPT baseline)"
+    lines = [
+        "",
+        f"## {title}",
+        "",
+        "Joint Embedding Predictive Transformer and its baselines (`lerobot_policy_jept` "
+        f"{config.plugin_version}): `pip install lerobot_policy_jept`, then LeRobot finds the `{config.type}` "
+        "policy.",
+        "",
+        f"- Training data: `{dataset_repo_id}`",
+        f"- Prompt bank: `{config.prompt_repo_id}`",
+    ]
+    for name, key in (("T_demo", "demo"), ("T_vid", "video"), ("T_unseen", "unseen")):
+        if key in split:
+            lines.append(f"- {name}: {', '.join(split[key]) or '(none)'}")
+    size = protocol.get("image_size", config.image_size)
+    task = (split.get("unseen") or split.get("demo") or ["button-press-v3"])[0]
+    repo = config.repo_id or "<this repo>"
+    lines += [
+        "",
+        "Evaluate:",
+        "",
+        "```bash",
+        f"lerobot-eval --policy.path={repo} --env.type=jept_metaworld --env.task={task} "
+        f"--env.image_size={size} --env.prompt_repo_id={config.prompt_repo_id} "
+        f"--env.prompt_max_frames={config.max_prompt_length} --eval.n_episodes=50",
+        f"jept-eval-suite --policy.path={repo} --dataset.repo_id={dataset_repo_id} --n_episodes=50",
+        "```",
+        "",
+    ]
+    return "\n".join(lines)
