@@ -1,7 +1,7 @@
 """JEPT (Joint Embedding Predictive Transformer) as a LeRobot policy plugin.
 
-``import lerobot_policy_jept`` (what LeRobot's scripts do) registers the ``jept`` policy type, its processor
-steps and the ``jept_metaworld`` / ``jept_robosuite`` envs. The package-level names below load on first use, so
+``import lerobot_policy_jept`` (what LeRobot's scripts do) registers the ``jept`` policy type and its baselines
+(``dt_star``, ``vid2robot``, ``idm``), their processor steps and the ``jept_metaworld`` / ``jept_robosuite`` envs. The package-level names below load on first use, so
 that the dataset builders, which import ``lerobot_jept.envs`` in every worker process, do not pay for the model.
 """
 
@@ -11,6 +11,10 @@ _EXPORTS = {
     "JEPTConfig": "lerobot_jept.configuration_jept",
     "JEPTPolicy": "lerobot_jept.modeling_jept",
     "make_jept_pre_post_processors": "lerobot_jept.processor_jept",
+    "DTStarConfig": "lerobot_jept.configuration_dt_star",
+    "DTStarPolicy": "lerobot_jept.modeling_dt_star",
+    "IDMConfig": "lerobot_jept.configuration_idm",
+    "IDMPolicy": "lerobot_jept.modeling_idm",
     "JeptMetaworldEnvConfig": "lerobot_jept.envs.configs",
     "JeptRobosuiteEnvConfig": "lerobot_jept.envs.configs",
 }

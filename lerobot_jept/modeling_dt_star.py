@@ -1,0 +1,88 @@
+"""``DTStarPolicy``: DT*, behaviour cloning with JEPT's parts and no joint embedding prediction.
+
+Training: the k context frames are tokenised frame by frame (backbone -> Perceiver-IO + self-state token), the
+causal Transformer runs over ``[E_prt | o_{t-k+1}, ..., o_t]`` (``DT_STAR_RULES``), the action head reads a_j
+from the o_j hidden states, and ``forward`` returns L_act on the labelled frames. Control: only the new frame is
+encoded; the action of the last frame is taken.
+"""
+
+import torch
+from lerobot.utils.constants import OBS_STATE
+from torch import Tensor
+
+from lerobot_jept.components.predictor import DTStarTransformer
+from lerobot_jept.configuration_dt_star import DTStarConfig
+from lerobot_jept.policy_base import (
+    DiscreteActionPolicy,
+    VisualPolicyNet,
+    make_action_head,
+    make_backbone,
+    make_prompt_encoder,
+    make_tokenizer,
+    transformer_kwargs,
+)
+
+
+class DTStar(VisualPolicyNet):
+    """Backbone, single-frame tokenizer, Psi_prt, the causal Transformer and Gamma_act."""
+
+    def __init__(self, config: DTStarConfig):
+        super().__init__()
+        self.config = config
+        self.backbone = make_backbone(config)
+        self.tokenizer = make_tokenizer(config, self.backbone.dim)
+        self.prompt_encoder = make_prompt_encoder(config, self.backbone.dim)
+        self.transformer = DTStarTransformer(
+            config.perceiver_dim,
+            config.predictor_dim,
+            **transformer_kwargs(config, "predictor"),
+            max_steps=config.n_obs_steps,
+            tokens_per_step=config.frame_perceiver_queries + 1,
+        )
+        self.action_head = make_action_head(config, config.predictor_dim)
+
+    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
+        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
+
+    def action_logits(self, prompt: Tensor, obs: Tensor) -> Tensor:
+        """E_prt (B, N_prt, D) and obs tokens (B, k, N, D) -> logits (B, k, A, bins) of a_{t-k+1} .. a_t."""
+        return self.action_head(self.transformer(prompt, obs))
+
+
+class DTStarPolicy(DiscreteActionPolicy):
+    """DT*: pi(a_t | o_{t-k+1..t}, prompt video) by behaviour cloning on labelled frames."""
+
+    config_class = DTStarConfig
+    name = "dt_star"
+
+    def __init__(self, config: DTStarConfig, **kwargs):
+        config.validate_features()
+        super().__init__(config, DTStar(config))
+
+    def get_optim_params(self) -> list[dict]:
+        cfg, m = self.config, self.model
+        groups = [
+            (cfg.optimizer_lr_encoder, [m.tokenizer] + ([] if cfg.freeze_backbone else [m.backbone])),
+            (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+            (cfg.optimizer_lr_predictor, [m.transformer, m.action_head]),
+        ]
+        return [
+            {"params": [p for mod in mods for p in mod.parameters() if p.requires_grad], "lr": lr}
+            for lr, mods in groups
+        ]
+
+    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
+        m = self.model
+        obs = m.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])  # (B, k, N, D)
+        loss_act, labelled = self.action_loss(m.action_logits(self.prompt(batch), obs), batch)
+        mean = self.labelled_mean(loss_act, labelled)
+        info = {"loss_act": mean.item(), "labelled_fraction": labelled[..., 0].mean().item()}
+        return (loss_act if reduction == "none" else mean), info
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """(B, action_dim) bin-centre actions for the current observation."""
+        prompt = self.episode_prompt(batch)
+        obs = self.context_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        logits = self.model.action_logits(prompt, obs)[:, -1]
+        return self.bin_centres[logits.argmax(-1)]

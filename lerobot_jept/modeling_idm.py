@@ -1,0 +1,82 @@
+"""``IDMPolicy``: a_t = f(o_t, o_{t+1}) for the BC+IDM baseline. It labels recorded frames offline
+(``jept-relabel``); it is not a controller, so ``select_action`` says so."""
+
+from einops import rearrange
+from lerobot.utils.constants import OBS_STATE
+from torch import Tensor, nn
+
+from lerobot_jept.components.attention import SelfAttentionStack, StepPositions
+from lerobot_jept.configuration_idm import IDMConfig
+from lerobot_jept.policy_base import (
+    DiscreteActionPolicy,
+    VisualPolicyNet,
+    make_action_head,
+    make_backbone,
+    make_tokenizer,
+    transformer_kwargs,
+)
+
+
+class IDM(VisualPolicyNet):
+    """Backbone, single-frame tokenizer, a bi-directional Transformer over the two frames' tokens, Gamma_act."""
+
+    def __init__(self, config: IDMConfig):
+        super().__init__()
+        self.config = config
+        self.backbone = make_backbone(config)
+        self.tokenizer = make_tokenizer(config, self.backbone.dim)
+        width = config.predictor_dim
+        self.inp = nn.Linear(config.perceiver_dim, width)
+        self.positions = StepPositions(2, config.frame_perceiver_queries + 1, width)
+        sizes = transformer_kwargs(config, "predictor")
+        self.transformer = SelfAttentionStack(
+            width, sizes["heads"], sizes["ff_dim"], sizes["layers"], sizes["dropout"]
+        )
+        self.action_head = make_action_head(config, width)
+
+    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
+        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
+
+    def forward(self, images: Tensor, state: Tensor) -> Tensor:
+        """Frames (B, 2, 3, H, W) and states (B, 2, S) of o_t, o_{t+1} -> logits (B, 1, A, bins) of a_t."""
+        x = self.inp(self.frame_tokens(images, state)) + self.positions(2)
+        z = self.transformer(rearrange(x, "b t n d -> b (t n) d"))
+        return self.action_head(z[:, None])
+
+
+class IDMPolicy(DiscreteActionPolicy):
+    """Inverse dynamics model: the action bin of a_t from the transition (o_t, o_{t+1})."""
+
+    config_class = IDMConfig
+    name = "idm"
+
+    def __init__(self, config: IDMConfig, **kwargs):
+        config.validate_features()
+        super().__init__(config, IDM(config))
+
+    def get_optim_params(self) -> list[dict]:
+        cfg, m = self.config, self.model
+        groups = [
+            (cfg.optimizer_lr_encoder, [m.tokenizer] + ([] if cfg.freeze_backbone else [m.backbone])),
+            (cfg.optimizer_lr_predictor, [m.inp, m.positions, m.transformer, m.action_head]),
+        ]
+        return [
+            {"params": [p for mod in mods for p in mod.parameters() if p.requires_grad], "lr": lr}
+            for lr, mods in groups
+        ]
+
+    def action_logits(self, batch: dict[str, Tensor]) -> Tensor:
+        """Logits (B, A, bins) of a_t of a preprocessed batch (two frames per sample)."""
+        return self.model(batch[self.config.image_key], batch[OBS_STATE])[:, 0]
+
+    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
+        loss, labelled = self.action_loss(self.action_logits(batch)[:, None], batch)
+        mean = self.labelled_mean(loss, labelled)
+        info = {"loss_act": mean.item(), "labelled_fraction": labelled[..., 0].mean().item()}
+        return (loss if reduction == "none" else mean), info
+
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        raise NotImplementedError(
+            "An inverse dynamics model needs the next observation, so it cannot act: relabel a mix with "
+            "`jept-relabel --policy.path=IDM_CHECKPOINT ...` and train --policy.type=dt_star on the result."
+        )
