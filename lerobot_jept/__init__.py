@@ -13,6 +13,8 @@ _EXPORTS = {
     "make_jept_pre_post_processors": "lerobot_jept.processor_jept",
     "DTStarConfig": "lerobot_jept.configuration_dt_star",
     "DTStarPolicy": "lerobot_jept.modeling_dt_star",
+    "Vid2RobotConfig": "lerobot_jept.configuration_vid2robot",
+    "Vid2RobotPolicy": "lerobot_jept.modeling_vid2robot",
     "IDMConfig": "lerobot_jept.configuration_idm",
     "IDMPolicy": "lerobot_jept.modeling_idm",
     "JeptMetaworldEnvConfig": "lerobot_jept.envs.configs",

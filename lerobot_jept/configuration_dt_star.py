@@ -10,12 +10,12 @@ from dataclasses import dataclass
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_jept.configuration_jept import JEPTConfig
+from lerobot_jept.configuration_jept import BehaviourCloningConfig
 
 
 @PreTrainedConfig.register_subclass("dt_star")
 @dataclass
-class DTStarConfig(JEPTConfig):
+class DTStarConfig(BehaviourCloningConfig):
     """DT* (``--policy.type=dt_star``). Every size is JEPT's (Table 5 defaults; the small configuration is
     ``examples/configs/train_dt_star_small_cpu.json``), so a comparison changes only the objective:
 
@@ -31,19 +31,3 @@ class DTStarConfig(JEPTConfig):
 
     Samples hold the k context frames only (no next frame), so ``drop_n_last_frames`` is 0.
     """
-
-    prompt_align_weight: float = 0.0
-    prompt_swap_weight: float = 0.0
-    drop_n_last_frames: int = 0
-
-    def __post_init__(self):
-        super().__post_init__()
-        if self.prompt_align_weight or self.prompt_swap_weight:
-            raise ValueError(
-                "dt_star has no joint embedding target, so the prompt terms cannot apply: drop "
-                "--policy.prompt_align_weight / --policy.prompt_swap_weight (they are JEPT's)."
-            )
-
-    @property
-    def observation_delta_indices(self) -> list[int]:
-        return list(range(1 - self.n_obs_steps, 1))  # o_{t-k+1} .. o_t

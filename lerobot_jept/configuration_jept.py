@@ -322,3 +322,25 @@ SMALL_CPU_OVERRIDES = dict(
     optimizer_lr_predictor=7e-4,
     scheduler_warmup_steps=50,
 )
+
+
+@dataclass
+class BehaviourCloningConfig(JEPTConfig):
+    """Base of the baselines that clone actions from the k context frames (``dt_star``, ``vid2robot``): JEPT's
+    sizes, no joint embedding target (so no prompt terms), samples of k frames without a next one."""
+
+    prompt_align_weight: float = 0.0
+    prompt_swap_weight: float = 0.0
+    drop_n_last_frames: int = 0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.prompt_align_weight or self.prompt_swap_weight:
+            raise ValueError(
+                f"{self.type} has no joint embedding target, so JEPT's prompt terms cannot apply: drop "
+                "--policy.prompt_align_weight / --policy.prompt_swap_weight."
+            )
+
+    @property
+    def observation_delta_indices(self) -> list[int]:
+        return list(range(1 - self.n_obs_steps, 1))  # o_{t-k+1} .. o_t

@@ -18,6 +18,7 @@ import torch.nn.functional as F  # noqa: N812
 from lerobot.utils.constants import OBS_STATE
 from torch import Tensor, nn
 
+from lerobot_jept.components.alignment import PromptAlignment
 from lerobot_jept.components.encoders import JointEmbeddingEncoder
 from lerobot_jept.components.predictor import CausalPredictor, ObservationHead
 from lerobot_jept.configuration_jept import JEPTConfig
@@ -52,27 +53,6 @@ class JointEmbeddingTarget(nn.Module):
             max_steps=config.n_obs_steps + 1,
             tokens_per_step=config.frame_perceiver_queries + 1,
         )
-
-
-class PromptAlignment(nn.Module):
-    """Supervised contrastive alignment of prompts with trajectories (an addition to the paper, see
-    ``JEPTConfig.prompt_align_weight``): the mean E_prt token of each sample's prompt is pulled towards the mean
-    target joint embedding of every sample of the same task in the batch and pushed from the others (InfoNCE
-    with all same-task samples as positives, as in SupCon). The targets are the EMA encoder's, without
-    gradient, so only the prompt encoder and the two projections learn from it."""
-
-    def __init__(self, prompt_dim: int, joint_dim: int, dim: int = 128):
-        super().__init__()
-        self.prompt_proj = nn.Sequential(nn.LayerNorm(prompt_dim), nn.Linear(prompt_dim, dim))
-        self.traj_proj = nn.Sequential(nn.LayerNorm(joint_dim), nn.Linear(joint_dim, dim))
-
-    def forward(self, prompt: Tensor, targets: Tensor, task_ids: Tensor, temperature: float) -> Tensor:
-        """prompt (B, N_prt, D), targets (B, k, N, J), task_ids (B,) -> scalar loss."""
-        p = F.normalize(self.prompt_proj(prompt.mean(1)), dim=-1)
-        t = F.normalize(self.traj_proj(targets.mean((1, 2))), dim=-1)
-        log_prob = (p @ t.T / temperature).log_softmax(-1)
-        positive = (task_ids[:, None] == task_ids[None, :]).float()
-        return -((log_prob * positive).sum(-1) / positive.sum(-1)).mean()
 
 
 class JEPT(VisualPolicyNet):
@@ -223,7 +203,7 @@ class JEPTPolicy(DiscreteActionPolicy):
             return zero, {}
         if cfg.prompt_align_weight == 0 and cfg.prompt_swap_weight == 0:
             return zero, {}
-        task_ids = self._task_ids(batch, dist.shape[0], dist.device)
+        task_ids = self.task_ids(batch, dist.shape[0], dist.device)
         extra, info = zero, {}
         if cfg.prompt_align_weight > 0:
             align = m.prompt_align(prompt, targets, task_ids, cfg.prompt_align_temperature)
@@ -244,20 +224,6 @@ class JEPTPolicy(DiscreteActionPolicy):
             info["loss_prompt_swap"] = swap.mean().item()
             info["prompt_swap_gap"] = gap.mean().item()
         return extra, info
-
-    @staticmethod
-    def _task_ids(batch: dict, size: int, device) -> Tensor:
-        """(B,) task identity of each sample: ``task_index`` as LeRobot's dataset gives it, else ``task``."""
-        if "task_index" in batch and torch.is_tensor(batch["task_index"]):
-            return batch["task_index"].reshape(size).to(device)
-        tasks = batch.get("task")
-        if tasks is None:
-            raise KeyError(
-                "The prompt losses (prompt_align_weight, prompt_swap_weight) need each sample's task: the batch "
-                "has neither `task_index` nor `task`. Train from a LeRobotDataset, or set both weights to 0."
-            )
-        names = sorted(set(tasks))
-        return torch.tensor([names.index(t) for t in tasks], device=device)
 
     @torch.no_grad()
     def offline_action_logits(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:

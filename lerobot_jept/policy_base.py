@@ -194,6 +194,19 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         has_label = (labelled.sum((1, 2)) > 0).float()
         return (loss * has_label).sum() / has_label.sum().clamp_min(1)
 
+    def task_ids(self, batch: dict, size: int, device) -> Tensor:
+        """(B,) task identity of each sample: ``task_index`` as LeRobot's dataset gives it, else ``task``."""
+        if "task_index" in batch and torch.is_tensor(batch["task_index"]):
+            return batch["task_index"].reshape(size).to(device)
+        tasks = batch.get("task")
+        if tasks is None:
+            raise KeyError(
+                f"{self.name}'s prompt losses need each sample's task: the batch has neither `task_index` nor "
+                "`task`. Train from a LeRobotDataset."
+            )
+        names = sorted(set(tasks))
+        return torch.tensor([names.index(t) for t in tasks], device=device)
+
     def prompt(self, batch: dict[str, Tensor]) -> Tensor:
         if PROMPT_VIDEO not in batch:
             raise KeyError(

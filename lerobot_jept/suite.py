@@ -111,8 +111,10 @@ def summarise(split: dict[str, list[str]], success: dict[str, float]) -> dict[st
     return rows
 
 
-def markdown(rows: dict[str, float], per_task: dict[str, dict], paper: bool) -> str:
-    header = "| Task | JEPT (this run) |" + (" JEPT (paper) |" if paper else "")
+def markdown(
+    rows: dict[str, float], per_task: dict[str, dict], paper: bool, policy_type: str = "jept"
+) -> str:
+    header = f"| Task | {policy_type} (this run) |" + (" JEPT (paper) |" if paper else "")
     lines = [header, "|---|---:|" + ("---:|" if paper else "")]
     for name, value in rows.items():
         cell = f"| {name} | {value:.1f} |"
@@ -194,6 +196,14 @@ def run_suite(cfg: SuiteConfig) -> dict:
             f"{cfg.dataset.repo_id} was built from {simulator!r}; the suite runs {sorted(TITLES)}."
         )
     split = build["split"]
+    from lerobot.configs.policies import PreTrainedConfig
+
+    policy_type = PreTrainedConfig.from_pretrained(cfg.policy.path).type
+    if cfg.probe_repo_id and policy_type != "jept":
+        raise SuiteError(
+            f"--probe_repo_id measures JEPT's prompt embedding and predicted next embedding; {cfg.policy.path} is a "
+            f"{policy_type!r} policy. Drop --probe_repo_id for it."
+        )
     prompt_repo_id = cfg.prompt_repo_id or build["repos"]["prompts"]
     tasks = [(t, role) for role in ("demo", "video", "unseen") for t in split[role]]
     out = Path(cfg.output_dir)
@@ -206,14 +216,19 @@ def run_suite(cfg: SuiteConfig) -> dict:
             "split": role,
             "pc_success": float(overall["pc_success"]),
             "n_episodes": int(overall["n_episodes"]),
+            "successes": [bool(s) for t in info["per_task"] for s in t["metrics"]["successes"]],
             "eval_info": str(out / "tasks" / task / "eval_info.json"),
         }
     rows = summarise(split, {t: r["pc_success"] for t, r in per_task.items()})
-    paper = simulator == "metaworld" and {k: sorted(v) for k, v in split.items()} == {
-        k: sorted(v) for k, v in PAPER_SPLIT.items()
-    }
+    paper = (
+        policy_type == "jept"
+        and simulator == "metaworld"
+        and {k: sorted(v) for k, v in split.items()} == {k: sorted(v) for k, v in PAPER_SPLIT.items()}
+    )
     results = {
         "policy": cfg.policy.path,
+        "policy_type": policy_type,
+        "simulator": simulator,
         "dataset": cfg.dataset.repo_id,
         "n_episodes": cfg.n_episodes,
         "seed": cfg.seed,
@@ -222,7 +237,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
         "table": rows,
         "paper_table": PAPER_TABLE1 if paper else None,
     }
-    table = markdown(rows, per_task, paper)
+    table = markdown(rows, per_task, paper, policy_type)
     if cfg.probe_repo_id:
         from lerobot_jept.prompt_probe import ProbeConfig, run_probe
         from lerobot_jept.prompt_probe import markdown as probe_markdown

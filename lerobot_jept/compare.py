@@ -1,0 +1,245 @@
+"""``jept-compare``: several methods' ``jept-eval-suite`` outputs as the paper's Table 1 (Meta-World) or Table 3
+(robosuite): one column per method, the mean over training seeds with a 95% interval, the paper's numbers beside
+them when the split is the paper's, a grouped bar chart with error bars.
+
+    jept-compare --runs='{JEPT: [outputs/suite/jept_s1000, outputs/suite/jept_s2000], DT*: [outputs/suite/dt_s1000]}' \\
+        --output_dir=outputs/compare
+
+Intervals: with two or more seeds, Student's t interval of the per-seed values (seeds are the unit of
+replication: training is the noisiest part); with one seed, a percentile bootstrap over that run's evaluation
+episodes (resampled within each task), which covers evaluation noise only and is marked so.
+"""
+
+import json
+import logging
+import math
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+
+from lerobot_jept.suite import PAPER_SPLIT, summarise
+
+# The paper's Table 1 (Meta-World, its Table 7 split) and Table 3 (robosuite), success %.
+PAPER_TABLE1 = {
+    "Vid2Robot-D": [51.8, 4.7, 10.0, 0.0, 4.0, 4.0, 28.2, 4.5],
+    "Vid2Robot-M": [46.3, 28.7, 22.0, 4.0, 8.0, 14.0, 37.5, 12.0],
+    "BC+IDM": [49.5, 8.3, 8.0, 0.0, 0.0, 4.0, 28.9, 3.0],
+    "JEPT+MWM": [44.5, 21.3, 18.0, 4.0, 2.0, 14.0, 32.9, 9.5],
+    "DT*": [61.3, 13.0, 6.0, 0.0, 0.0, 0.0, 37.1, 1.5],
+    "JEPT": [51.3, 31.7, 28.0, 10.0, 14.0, 22.0, 41.5, 18.5],
+}
+TABLE1_ROWS = ["T_demo", "T_vid", *PAPER_SPLIT["unseen"], "Seen average", "Unseen average"]
+PAPER_TABLE3 = {
+    "Vid2Robot-D": [26.8, 4.0, 4.0, 0.0, 0.0, 0.0, 15.5, 1.0],
+    "Vid2Robot-M": [20.7, 11.6, 16.0, 2.0, 4.0, 0.0, 16.1, 5.5],
+    "BC+IDM": [26.7, 8.4, 6.0, 0.0, 0.0, 0.0, 17.5, 1.5],
+    "JEPT+MWM": [24.3, 10.8, 22.0, 6.0, 2.0, 0.0, 17.6, 7.5],
+    "DT*": [36.3, 2.0, 8.0, 0.0, 0.0, 0.0, 19.2, 2.0],
+    "JEPT": [27.2, 12.8, 38.0, 16.0, 12.0, 8.0, 20.1, 18.5],
+}
+TABLE3_ROWS = [
+    "T_demo",
+    "T_vid",
+    "panda-lift",
+    "sawyer-lift",
+    "iiwa-lift",
+    "ur5e-lift",
+    "Seen average",
+    "Unseen average",
+]
+
+
+@dataclass
+class CompareConfig:
+    # method name -> jept-eval-suite output folders, one per training seed
+    runs: dict[str, list[str]] = field(default_factory=dict)
+    output_dir: Path = Path("outputs/compare")
+    confidence: float = 0.95
+    bootstrap_samples: int = 2000
+
+
+class CompareError(ValueError):
+    pass
+
+
+def _key(name: str) -> str:
+    return re.sub(r"[^a-z0-9]", "", name.lower())
+
+
+def paper_columns(simulator: str, split: dict) -> tuple[dict[str, dict[str, float]], str] | None:
+    """The paper's table for this split (Table 1 for the Table 7 split, Table 3 for the default robosuite one)."""
+    if simulator == "metaworld" and {k: sorted(v) for k, v in split.items()} == {
+        k: sorted(v) for k, v in PAPER_SPLIT.items()
+    }:
+        table, rows, name = PAPER_TABLE1, TABLE1_ROWS, "Table 1"
+    elif simulator == "robosuite":
+        from dataset_builders.robosuite import DEFAULT_DEMO_TASKS, DEFAULT_UNSEEN_TASKS, DEFAULT_VIDEO_TASKS
+
+        default = {"demo": DEFAULT_DEMO_TASKS, "video": DEFAULT_VIDEO_TASKS, "unseen": DEFAULT_UNSEEN_TASKS}
+        if {k: sorted(v) for k, v in split.items()} != {k: sorted(v) for k, v in default.items()}:
+            return None
+        table, rows, name = PAPER_TABLE3, TABLE3_ROWS, "Table 3 (its own T_demo/T_vid tasks)"
+    else:
+        return None
+    return {method: dict(zip(rows, values, strict=True)) for method, values in table.items()}, name
+
+
+def load_run(folder: str) -> dict:
+    path = Path(folder) / "results.json"
+    if not path.is_file():
+        raise CompareError(f"{path} does not exist: pass folders written by jept-eval-suite --output_dir=...")
+    results = json.loads(path.read_text())
+    missing = [t for t, r in results["per_task"].items() if "successes" not in r]
+    if missing or "simulator" not in results:
+        raise CompareError(
+            f"{path} has no per-episode outcomes (written by an older jept-eval-suite): "
+            "re-run jept-eval-suite on that checkpoint."
+        )
+    return results
+
+
+def t_interval(values: list[float], confidence: float) -> tuple[float, float]:
+    from scipy import stats
+
+    n = len(values)
+    mean = float(np.mean(values))
+    half = float(stats.t.ppf(0.5 + confidence / 2, n - 1) * np.std(values, ddof=1) / math.sqrt(n))
+    return mean - half, mean + half
+
+
+def bootstrap_interval(run: dict, row: str, confidence: float, samples: int) -> tuple[float, float]:
+    """Percentile interval of a table row over resampled episodes (within each task) of one run."""
+    rng = np.random.default_rng(0)
+    outcomes = {t: np.asarray(r["successes"], dtype=float) for t, r in run["per_task"].items()}
+    values = []
+    for _ in range(samples):
+        success = {t: 100.0 * o[rng.integers(len(o), size=len(o))].mean() for t, o in outcomes.items()}
+        values.append(summarise(run["split"], success)[row])
+    return tuple(float(q) for q in np.quantile(values, [0.5 - confidence / 2, 0.5 + confidence / 2]))
+
+
+def compare(cfg: CompareConfig) -> dict:
+    if not cfg.runs or not all(cfg.runs.values()):
+        raise CompareError(
+            "Pass --runs='{METHOD: [SUITE_DIR, ...], ...}' with at least one folder per method."
+        )
+    runs = {method: [load_run(f) for f in folders] for method, folders in cfg.runs.items()}
+    first = next(iter(runs.values()))[0]
+    split = first["split"]
+    for method, results in runs.items():
+        for folder, r in zip(cfg.runs[method], results, strict=True):
+            if r["split"] != split:
+                raise CompareError(
+                    f"{folder} was evaluated on another split than {cfg.runs[next(iter(runs))][0]}: compare "
+                    "runs of the same mix (the suite reads the split from it)."
+                )
+    simulator = first["simulator"]
+    rows = list(first["table"])
+    table = {}
+    for method, results in runs.items():
+        table[method] = {}
+        for row in rows:
+            values = [float(r["table"][row]) for r in results]
+            if len(values) >= 2:
+                low, high = t_interval(values, cfg.confidence)
+                kind = "t over seeds"
+            else:
+                low, high = bootstrap_interval(results[0], row, cfg.confidence, cfg.bootstrap_samples)
+                kind = "bootstrap over episodes (1 seed)"
+            table[method][row] = {
+                "mean": float(np.mean(values)),
+                "low": low,
+                "high": high,
+                "seeds": values,
+                "interval": kind,
+            }
+    paper = paper_columns(simulator, split)
+    paper_table, paper_name = paper if paper else ({}, None)
+    paper_match = {m: p for m in runs for p in paper_table if _key(p) == _key(m)}
+    comparison = {
+        "simulator": simulator,
+        "split": split,
+        "confidence": cfg.confidence,
+        "runs": cfg.runs,
+        "table": table,
+        "paper": {m: paper_table[p] for m, p in paper_match.items()} if paper else None,
+        "paper_source": paper_name,
+    }
+    out = Path(cfg.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "comparison.json").write_text(json.dumps(comparison, indent=2))
+    text = markdown(comparison, rows)
+    (out / "comparison.md").write_text(text)
+    bar_chart(comparison, rows, out / "comparison.png")
+    print(text)
+    print(f"Wrote {out / 'comparison.json'}, {out / 'comparison.md'}, {out / 'comparison.png'}")
+    return comparison
+
+
+def markdown(comparison: dict, rows: list[str]) -> str:
+    table, paper = comparison["table"], comparison["paper"] or {}
+    level = round(100 * comparison["confidence"])
+    columns = [(m, None) for m in table] + [(m, "paper") for m in paper]
+    header = "| Task | " + " | ".join(m if src is None else f"{m} (paper)" for m, src in columns) + " |"
+    lines = [header, "|---|" + "---:|" * len(columns)]
+    for row in rows:
+        cells = []
+        for method, src in columns:
+            if src == "paper":
+                cells.append(f"{paper[method][row]:.1f}")
+            else:
+                c = table[method][row]
+                cells.append(f"{c['mean']:.1f} [{c['low']:.1f}, {c['high']:.1f}]")
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    seeds = ", ".join(f"{m}: {len(next(iter(c.values()))['seeds'])}" for m, c in table.items())
+    lines += [
+        "",
+        f"Success %, mean over training seeds [{level}% interval] (seeds per method: {seeds}). "
+        "Intervals: Student's t over seeds; with one seed, a bootstrap over its evaluation episodes.",
+    ]
+    if comparison["paper_source"]:
+        lines.append(f"Paper columns: {comparison['paper_source']}.")
+    return "\n".join(lines) + "\n"
+
+
+def bar_chart(comparison: dict, rows: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table = comparison["table"]
+    methods = list(table)
+    width = 0.8 / len(methods)
+    fig, ax = plt.subplots(figsize=(1.3 * len(rows) + 2, 4.5))
+    for i, method in enumerate(methods):
+        xs = [r + (i - (len(methods) - 1) / 2) * width for r in range(len(rows))]
+        means = [table[method][row]["mean"] for row in rows]
+        errors = [
+            [m - table[method][row]["low"] for m, row in zip(means, rows, strict=True)],
+            [table[method][row]["high"] - m for m, row in zip(means, rows, strict=True)],
+        ]
+        ax.bar(xs, means, width, yerr=np.clip(errors, 0, None), capsize=2, label=method)
+    ax.set_xticks(range(len(rows)), rows, rotation=30, ha="right")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title(
+        f"{comparison['simulator']}: mean over seeds, {round(100 * comparison['confidence'])}% interval"
+    )
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING)
+    cfg = draccus.parse(CompareConfig)
+    try:
+        compare(cfg)
+    except CompareError as err:
+        sys.exit(f"jept-compare: {err}")
