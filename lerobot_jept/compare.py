@@ -7,7 +7,8 @@ them when the split is the paper's, a grouped bar chart with error bars.
 
 Intervals: with two or more seeds, Student's t interval of the per-seed values (seeds are the unit of
 replication: training is the noisiest part); with one seed, a percentile bootstrap over that run's evaluation
-episodes (resampled within each task), which covers evaluation noise only and is marked so.
+episodes (resampled within each task), which covers evaluation noise only and is marked so. Intervals are clipped
+to [0, 100].
 """
 
 import json
@@ -152,8 +153,8 @@ def compare(cfg: CompareConfig) -> dict:
                 kind = "bootstrap over episodes (1 seed)"
             table[method][row] = {
                 "mean": float(np.mean(values)),
-                "low": low,
-                "high": high,
+                "low": max(low, 0.0),  # a success rate lies in [0, 100]
+                "high": min(high, 100.0),
                 "seeds": values,
                 "interval": kind,
             }
