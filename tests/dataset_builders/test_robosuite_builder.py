@@ -140,16 +140,22 @@ def test_bad_flags(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_train_and_eval_end_to_end(rs_build, tmp_path):
+@pytest.mark.parametrize("policy_type", ["jept", "dt_star", "vid2robot", "idm"])
+def test_train_and_eval_end_to_end(rs_build, tmp_path, policy_type):
+    """Every policy type trains on the robosuite mix; the controllers also evaluate (the idm only labels)."""
     bin_dir = Path(sys.executable).parent
-    config = Path(__file__).parents[2] / "examples/configs/train_jept_small_cpu.json"
+    config = Path(__file__).parents[2] / f"examples/configs/train_{policy_type}_small_cpu.json"
+    prompt = (
+        []
+        if policy_type == "idm"
+        else ["--policy.prompt_repo_id=test/rs_tiny_prompts", "--policy.max_prompt_length=4"]
+    )
     commands = [
         [
             "lerobot-train",
             f"--config_path={config}",
             "--dataset.repo_id=test/rs_tiny_mix",
-            "--policy.prompt_repo_id=test/rs_tiny_prompts",
-            "--policy.max_prompt_length=4",
+            *prompt,
             "--policy.image_size=64",
             "--steps=2",
             "--batch_size=2",
@@ -181,9 +187,15 @@ def test_train_and_eval_end_to_end(rs_build, tmp_path):
             f"--output_dir={tmp_path / 'suite'}",
         ]
     )
+    if policy_type == "idm":
+        commands = commands[:1]
     for cmd in commands:
         proc = subprocess.run([str(bin_dir / cmd[0]), *cmd[1:]], capture_output=True, text=True, cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-4000:]
+    model = tmp_path / "train/checkpoints/last/pretrained_model"
+    assert json.loads((model / "config.json").read_text())["type"] == policy_type
+    if policy_type == "idm":
+        return
     info = json.loads((tmp_path / "eval/eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 1 and 0 <= info["overall"]["pc_success"] <= 100
     results = json.loads((tmp_path / "suite/results.json").read_text())

@@ -159,6 +159,20 @@ def test_idm_learns_from_transitions_and_cannot_act(tiny_build):
         policy.select_action(batch)
 
 
+@pytest.mark.parametrize("config_cls", [DTStarConfig, Vid2RobotConfig, IDMConfig])
+def test_small_configs_share_jepts_sizes(config_cls):
+    """The shipped small configurations are ``Config.small()`` and use jept's sizes wherever they overlap."""
+    from tests.lerobot_jept.test_end_to_end import CONFIG
+
+    jept = json.loads(CONFIG.read_text())["policy"]
+    name = config_cls.small().type
+    mine = json.loads(CONFIG.with_name(f"train_{name}_small_cpu.json").read_text())["policy"]
+    assert mine["type"] == name
+    assert {k: v for k, v in mine.items() if k != "type"} == {k: jept[k] for k in mine if k != "type"}
+    small = config_cls.small()
+    assert all(getattr(small, k) == v for k, v in mine.items() if k not in ("type", "device", "push_to_hub"))
+
+
 # jept-compare ----------------------------------------------------------------------------------------------
 
 
