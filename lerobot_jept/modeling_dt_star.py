@@ -6,14 +6,12 @@ from the o_j hidden states, and ``forward`` returns L_act on the labelled frames
 encoded; the action of the last frame is taken.
 """
 
-import torch
-from lerobot.utils.constants import OBS_STATE
 from torch import Tensor
 
 from lerobot_jept.components.predictor import DTStarTransformer
 from lerobot_jept.configuration_dt_star import DTStarConfig
 from lerobot_jept.policy_base import (
-    DiscreteActionPolicy,
+    ContextActionPolicy,
     VisualPolicyNet,
     make_action_head,
     make_backbone,
@@ -49,8 +47,8 @@ class DTStar(VisualPolicyNet):
         return self.action_head(self.transformer(prompt, obs))
 
 
-class DTStarPolicy(DiscreteActionPolicy):
-    """DT*: pi(a_t | o_{t-k+1..t}, prompt video) by behaviour cloning on labelled frames."""
+class DTStarPolicy(ContextActionPolicy):
+    """DT*: pi(a_t | o_{t-k+1..t}, prompt video) by behaviour cloning on labelled frames (L_act alone)."""
 
     config_class = DTStarConfig
     name = "dt_star"
@@ -61,28 +59,10 @@ class DTStarPolicy(DiscreteActionPolicy):
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model
-        groups = [
-            (cfg.optimizer_lr_encoder, [m.tokenizer] + ([] if cfg.freeze_backbone else [m.backbone])),
-            (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
-            (cfg.optimizer_lr_predictor, [m.transformer, m.action_head]),
-        ]
-        return [
-            {"params": [p for mod in mods for p in mod.parameters() if p.requires_grad], "lr": lr}
-            for lr, mods in groups
-        ]
-
-    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
-        m = self.model
-        obs = m.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])  # (B, k, N, D)
-        loss_act, labelled = self.action_loss(m.action_logits(self.prompt(batch), obs), batch)
-        mean = self.labelled_mean(loss_act, labelled)
-        info = {"loss_act": mean.item(), "labelled_fraction": labelled[..., 0].mean().item()}
-        return (loss_act if reduction == "none" else mean), info
-
-    @torch.no_grad()
-    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """(B, action_dim) bin-centre actions for the current observation."""
-        prompt = self.episode_prompt(batch)
-        obs = self.context_tokens(batch[self.config.image_key], batch[OBS_STATE])
-        logits = self.model.action_logits(prompt, obs)[:, -1]
-        return self.bin_centres[logits.argmax(-1)]
+        return self.lr_groups(
+            [
+                (cfg.optimizer_lr_encoder, self.encoder_modules()),
+                (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+                (cfg.optimizer_lr_predictor, [m.transformer, m.action_head]),
+            ]
+        )

@@ -56,14 +56,12 @@ class IDMPolicy(DiscreteActionPolicy):
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model
-        groups = [
-            (cfg.optimizer_lr_encoder, [m.tokenizer] + ([] if cfg.freeze_backbone else [m.backbone])),
-            (cfg.optimizer_lr_predictor, [m.inp, m.positions, m.transformer, m.action_head]),
-        ]
-        return [
-            {"params": [p for mod in mods for p in mod.parameters() if p.requires_grad], "lr": lr}
-            for lr, mods in groups
-        ]
+        return self.lr_groups(
+            [
+                (cfg.optimizer_lr_encoder, self.encoder_modules()),
+                (cfg.optimizer_lr_predictor, [m.inp, m.positions, m.transformer, m.action_head]),
+            ]
+        )
 
     def action_logits(self, batch: dict[str, Tensor]) -> Tensor:
         """Logits (B, A, bins) of a_t of a preprocessed batch (two frames per sample)."""

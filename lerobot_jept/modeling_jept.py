@@ -126,15 +126,13 @@ class JEPTPolicy(DiscreteActionPolicy):
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model
-        groups = [
-            (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
-            (cfg.optimizer_lr_prompt, [m.prompt_encoder, m.prompt_align]),
-            (cfg.optimizer_lr_predictor, [m.predictor, m.obs_head, m.action_head]),
-        ]
-        return [
-            {"params": [p for mod in mods for p in mod.parameters() if p.requires_grad], "lr": lr}
-            for lr, mods in groups
-        ]
+        return self.lr_groups(
+            [
+                (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
+                (cfg.optimizer_lr_prompt, [m.prompt_encoder, m.prompt_align]),
+                (cfg.optimizer_lr_predictor, [m.predictor, m.obs_head, m.action_head]),
+            ]
+        )
 
     @property
     def phase(self) -> str:

@@ -10,7 +10,6 @@ computed once per episode.
 
 import torch
 from einops import rearrange
-from lerobot.utils.constants import OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_jept.components.alignment import PromptAlignment, cycle_consistency_loss
@@ -20,7 +19,7 @@ from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
 from lerobot_jept.policy_base import (
     PROMPT_MASK,
     PROMPT_VIDEO,
-    DiscreteActionPolicy,
+    ContextActionPolicy,
     VisualPolicyNet,
     make_action_head,
     make_backbone,
@@ -105,7 +104,7 @@ class Vid2Robot(VisualPolicyNet):
         return self.action_head(self.transformer(obs, prompt))
 
 
-class Vid2RobotPolicy(DiscreteActionPolicy):
+class Vid2RobotPolicy(ContextActionPolicy):
     """Vid2Robot-D (trained on ``_demo``) / Vid2Robot-M (on ``_mix``)."""
 
     config_class = Vid2RobotConfig
@@ -117,30 +116,21 @@ class Vid2RobotPolicy(DiscreteActionPolicy):
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model
-        shared = {id(p) for p in m.tokenizer.parameters()}
-        groups = [
-            (
-                cfg.optimizer_lr_encoder,
-                list(m.tokenizer.parameters())
-                + ([] if cfg.freeze_backbone else list(m.backbone.parameters())),
-            ),
-            (cfg.optimizer_lr_prompt, [p for p in m.prompt_encoder.parameters() if id(p) not in shared]),
-            (
-                cfg.optimizer_lr_predictor,
-                [*m.transformer.parameters(), *m.action_head.parameters(), *m.contrastive.parameters()],
-            ),
-        ]
-        return [{"params": [p for p in params if p.requires_grad], "lr": lr} for lr, params in groups]
+        return self.lr_groups(
+            [
+                (cfg.optimizer_lr_encoder, self.encoder_modules()),  # the Perceiver shared with the prompt
+                (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+                (cfg.optimizer_lr_predictor, [m.transformer, m.action_head, m.contrastive]),
+            ]
+        )
 
-    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
+    def auxiliary_losses(self, batch: dict[str, Tensor], obs: Tensor) -> tuple[Tensor, Tensor, dict]:
+        """Prompt/robot video contrastive and temporal cycle consistency, on every frame."""
         cfg, m = self.config, self.model
         if PROMPT_VIDEO not in batch:
             self.prompt(batch)  # raises the clear error
-        obs = m.frame_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
         prompt_mask = batch.get(PROMPT_MASK)
         prompt, prompt_frames = m.encode_prompt_frames(batch[PROMPT_VIDEO], prompt_mask)
-        loss_bc, labelled = self.action_loss(m.action_logits(prompt, obs), batch)
-
         task_ids = self.task_ids(batch, obs.shape[0], obs.device)
         contrastive = m.contrastive(prompt, obs, task_ids, cfg.aux_temperature)
         pad = batch.get(f"{cfg.image_key}_is_pad")
@@ -154,20 +144,5 @@ class Vid2RobotPolicy(DiscreteActionPolicy):
             obs.mean(2), prompt_frames, robot_ok, prompt_ok, cfg.aux_temperature
         )
         aux = cfg.video_contrastive_weight * contrastive + cfg.video_alignment_weight * alignment
-        info = {
-            "loss_act": self.labelled_mean(loss_bc, labelled).item(),
-            "loss_video_contrastive": contrastive.item(),
-            "loss_video_alignment": alignment.mean().item(),
-            "labelled_fraction": labelled[..., 0].mean().item(),
-        }
-        if reduction == "none":
-            return loss_bc + aux, info
-        return self.labelled_mean(loss_bc, labelled) + aux.mean(), info
-
-    @torch.no_grad()
-    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """(B, action_dim) bin-centre actions for the current observation."""
-        prompt = self.episode_prompt(batch)
-        obs = self.context_tokens(batch[self.config.image_key], batch[OBS_STATE])
-        logits = self.model.action_logits(prompt, obs)[:, -1]
-        return self.bin_centres[logits.argmax(-1)]
+        info = {"loss_video_contrastive": contrastive.item(), "loss_video_alignment": alignment.mean().item()}
+        return prompt, aux, info

@@ -157,6 +157,22 @@ class DiscreteActionPolicy(PreTrainedPolicy):
 
     # Training ---------------------------------------------------------------------------------------------
 
+    def lr_groups(self, groups: list[tuple[float, list[nn.Module]]]) -> list[dict]:
+        """AdamW parameter groups ``[(lr, modules), ...]`` of the trainable parameters; a parameter shared by two
+        modules (Vid2Robot's one Perceiver) goes to the first group that names it."""
+        seen: set[int] = set()
+        out = []
+        for lr, modules in groups:
+            params = [p for m in modules for p in m.parameters() if p.requires_grad and id(p) not in seen]
+            seen.update(id(p) for p in params)
+            out.append({"params": params, "lr": lr})
+        return out
+
+    def encoder_modules(self) -> list[nn.Module]:
+        """The single-frame tokenizer, with the backbone when it is trained (the ``optimizer_lr_encoder`` group
+        of the baselines)."""
+        return [self.model.tokenizer] + ([] if self.config.freeze_backbone else [self.model.backbone])
+
     def update(self) -> None:
         """After every optimizer step: count it."""
         self.num_updates += 1
@@ -293,6 +309,33 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         images = torch.stack([f[0] for f in self._frames], 1)
         states = torch.stack([f[1] for f in self._frames], 1)
         return m.frame_tokens(images, states)
+
+
+class ContextActionPolicy(DiscreteActionPolicy):
+    """Base of the baselines that read the actions of the k context frames from their own tokens (``dt_star``,
+    ``vid2robot``): the model's ``action_logits(prompt, obs)`` gives (B, k, A, bins); control takes the last."""
+
+    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
+        """Behaviour cloning on the labelled frames, plus :meth:`auxiliary_losses` (per sample)."""
+        m = self.model
+        obs = m.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])  # (B, k, N, D)
+        prompt, aux, info = self.auxiliary_losses(batch, obs)
+        loss_act, labelled = self.action_loss(m.action_logits(prompt, obs), batch)
+        mean = self.labelled_mean(loss_act, labelled)
+        info = {"loss_act": mean.item(), "labelled_fraction": labelled[..., 0].mean().item(), **info}
+        return (loss_act + aux if reduction == "none" else mean + aux.mean()), info
+
+    def auxiliary_losses(self, batch: dict[str, Tensor], obs: Tensor) -> tuple[Tensor, Tensor, dict]:
+        """The prompt encoding, per-sample auxiliary losses (B,) on every frame, and what to log."""
+        return self.prompt(batch), obs.new_zeros(obs.shape[0]), {}
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """(B, action_dim) bin-centre actions for the current observation."""
+        prompt = self.episode_prompt(batch)
+        obs = self.context_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        logits = self.model.action_logits(prompt, obs)[:, -1]
+        return self.bin_centres[logits.argmax(-1)]
 
 
 def frame_mean(values: Tensor, frame_ok: Tensor) -> Tensor:

@@ -182,7 +182,10 @@ def write_actions(root: Path, actions: np.ndarray) -> None:
         for name in stats[0]:
             column = f"stats/action/{name}"
             if column in episodes:
-                episodes[column] = pd.Series([np.asarray(s[name]).reshape(-1) for s in stats], dtype=object)
+                dtype = np.int64 if name == "count" else np.float64
+                episodes[column] = pd.Series(
+                    [np.asarray(s[name], dtype).reshape(-1) for s in stats], dtype=object
+                )
         episodes.to_parquet(path, index=False)
 
 
