@@ -2,11 +2,13 @@
 
 A build turns expert rollouts into four LeRobotDataset v3 repos under ``$HF_LEROBOT_HOME``:
 
-- ``<repo_id>_demo``: T_demo episodes with ``action`` (the bin centre the env executed);
+- ``<repo_id>_demo``: T_demo episodes with ``action`` (the bin centre the env executed) and
+  ``observation.action_labelled`` = 1;
 - ``<repo_id>_video``: T_vid episodes with the same observation features and NO ``action`` feature;
 - ``<repo_id>_prompts``: the prompt-video bank, ``prompts_per_task`` observation-only episodes of every task;
-- ``<repo_id>_mix``: demo + video episodes in the one repo ``lerobot-train`` needs; video frames hold NaN in
-  every action dimension and ``meta/stats.json`` action stats come from labelled frames only.
+- ``<repo_id>_mix``: demo + video episodes in the one repo ``lerobot-train`` needs; video frames have
+  ``observation.action_labelled`` = 0 and the neutral action 0, and ``meta/stats.json`` action stats come from
+  labelled frames only (``lerobot_jept.mixing``: a representation LeRobot's dataset tools keep whole).
 
 How it stays resumable and safe to kill. Work is cut into *shards* (up to ``episodes_per_shard`` successful
 episodes of one task and one role). A shard is recorded as its own small LeRobotDataset in a ``.tmp`` folder
@@ -40,9 +42,8 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from lerobot_jept.discretization import snap_to_bins
+from lerobot_jept.mixing import MIX_FORMAT
 
 ROLES = ("demo", "video", "prompts")
 ROLLOUTS_AHEAD = 2  # episodes the rollout process may run ahead of the writing
@@ -570,6 +571,18 @@ def _recover_dir(final: Path) -> None:
         os.replace(old, final)
 
 
+def _with_labels(root: Path, repo_id: str) -> Path:
+    """The assembled demo repo at ``root`` with ``observation.action_labelled`` = 1 on every frame."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_jept.mixing import add_labels
+
+    out = root.with_name(root.name + "_labelled")
+    add_labels(LeRobotDataset(repo_id, root=root), out, repo_id, labelled=True)
+    shutil.rmtree(root)
+    return out
+
+
 def _aggregate(sources: list[tuple[str, Path]], repo_id: str, out: Path) -> None:
     from lerobot.datasets.aggregate import aggregate_datasets
 
@@ -582,74 +595,19 @@ def _aggregate(sources: list[tuple[str, Path]], repo_id: str, out: Path) -> None
     )
 
 
-def labelled_action_stats(root: Path) -> dict:
-    """LeRobot stats of ``action`` over the frames whose action is finite (the labelled ones)."""
-    import pandas as pd
-    from lerobot.datasets.compute_stats import get_feature_stats
-
-    actions = np.concatenate(
-        [
-            np.stack(pd.read_parquet(path, columns=["action"])["action"].to_numpy())
-            for path in sorted((root / "data").glob("*/*.parquet"))
-        ]
-    )
-    labelled = actions[np.isfinite(actions).all(axis=1)]
-    if len(labelled) == 0:
-        raise BuildError(f"{root} has no labelled action: the mix needs at least one demo task.")
-    return get_feature_stats(labelled, axis=0, keepdims=False)
-
-
-def _nulls_to_nan(root: Path, key: str) -> None:
-    """Store missing ``key`` values as NaN floats, which LeRobot reads back as NaN tensors.
-
-    ``add_features`` goes through pandas, which turns NaN inside list cells into Arrow nulls; LeRobot's reader
-    cannot make a tensor of a null.
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-    import pyarrow.parquet as pq
-
-    for path in sorted((root / "data").glob("*/*.parquet")):
-        table = pq.read_table(path)
-        column = table[key]
-        chunks = [
-            pa.ListArray.from_arrays(chunk.offsets, pc.fill_null(chunk.values, np.float32("nan")))
-            for chunk in column.chunks
-        ]
-        fixed = pa.chunked_array(chunks, type=column.type)
-        table = table.set_column(table.schema.get_field_index(key), table.schema.field(key), fixed)
-        pq.write_table(table, path)
-
-
 def build_mix(paths: BuildPaths, action_feature: dict, has_demo: bool, has_video: bool) -> None:
-    """``_mix`` = demo episodes + video episodes whose ``action`` is NaN in every dimension."""
-    from lerobot.datasets.dataset_tools import add_features
-    from lerobot.datasets.io_utils import load_stats, write_stats
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    """``_mix`` = the ``_demo`` episodes + the ``_video`` episodes with the neutral action, unlabelled
+    (``lerobot_jept.mixing``)."""
+    from lerobot_jept.mixing import mix
 
-    staging = paths.work / "staging"
-    sources = []
-    if has_demo:
-        sources.append((paths.repo_id_of("demo"), paths.repo("demo")))
-    if has_video:
-        video = LeRobotDataset(paths.repo_id_of("video"), root=paths.repo("video"))
-        nan_actions = np.full((video.meta.total_frames, *action_feature["shape"]), np.nan, dtype=np.float32)
-        nan_root = staging / "video_nan"
-        shutil.rmtree(nan_root, ignore_errors=True)
-        add_features(
-            video,
-            {"action": (nan_actions, action_feature)},
-            output_dir=nan_root,
-            repo_id=paths.repo_id_of("video_nan"),
-        )
-        sources.append((paths.repo_id_of("video_nan"), nan_root))
-    tmp = staging / "mix"
-    _aggregate(sources, paths.repo_id_of("mix"), tmp)
-    _nulls_to_nan(tmp, "action")
-    stats = load_stats(tmp)
-    stats["action"] = labelled_action_stats(tmp)
-    write_stats(stats, tmp)
-    _replace_dir(tmp, paths.repo("mix"))
+    demos = [(paths.repo_id_of("demo"), paths.repo("demo"))] if has_demo else []
+    videos = [(paths.repo_id_of("video"), paths.repo("video"))] if has_video else []
+    staging = paths.work / "staging" / "mixing"
+    try:
+        done = mix(demos, videos, paths.repo_id_of("mix"), staging, action_feature)
+    except ValueError as err:
+        raise BuildError(str(err)) from err
+    _replace_dir(done, paths.repo("mix"))
     shutil.rmtree(staging, ignore_errors=True)
 
 
@@ -712,6 +670,8 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
 
     summaries = [json.loads((paths.shard(s) / "shard.json").read_text()) for s in shards]
     assembled = record.get("assembled", {})
+    if assembled.get("format") != MIX_FORMAT:  # repos assembled by an older version are assembled again
+        assembled = {"format": MIX_FORMAT}
     for role in ROLES:
         role_shards = [s for s in shards if s.role == role]
         names = [s.name for s in role_shards]
@@ -721,6 +681,8 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
         _aggregate(
             [(paths.shard_repo_id(s), paths.shard(s)) for s in role_shards], paths.repo_id_of(role), tmp
         )
+        if role == "demo":  # every frame labelled, as in the mix, so that LeRobot can merge the two
+            tmp = _with_labels(tmp, paths.repo_id_of(role))
         _replace_dir(tmp, paths.repo(role))
         assembled[role] = names
         assembled.pop("mix", None)
@@ -803,8 +765,8 @@ ROLE_DESCRIPTIONS = {
     ),
     "prompts": "the prompt-video bank: observation-only episodes of every task, looked up by task string",
     "mix": (
-        "the single training repo for `lerobot-train`: demo and video episodes together; `action` is NaN on "
-        "video frames (stats come from labelled frames only)"
+        "the single training repo for `lerobot-train`: demo and video episodes together; video frames have "
+        "`observation.action_labelled` = 0 and a neutral action of 0 (stats come from labelled frames only)"
     ),
 }
 

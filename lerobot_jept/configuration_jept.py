@@ -17,6 +17,8 @@ from lerobot.optim.optimizers import AdamWConfig
 from lerobot.optim.schedulers import ConstantWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from lerobot_jept.envs.spec import ACTION_LABELLED
+
 PHASE_SCHEDULES = ("alternate", "joint")
 
 
@@ -255,6 +257,8 @@ class JEPTConfig(PreTrainedConfig):
         return self.action_dim
 
     def validate_features(self) -> None:
+        # The mixes' per-frame label marker is read by the preprocessor, never by the model.
+        self.input_features.pop(ACTION_LABELLED, None)
         if not self.image_features:
             raise ValueError(
                 "JEPT needs a camera image (an `observation.image*` feature) but the dataset has none: "

@@ -22,6 +22,7 @@ from lerobot.processor.factory import make_default_policy_processor_steps, make_
 from torch import Tensor
 
 from lerobot_jept.configuration_jept import JEPTConfig
+from lerobot_jept.envs.spec import ACTION_LABELLED
 from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.prompts import PromptBank, resize_frames, subsample_indices
 
@@ -29,10 +30,12 @@ from lerobot_jept.prompts import PromptBank, resize_frames, subsample_indices
 @ProcessorStepRegistry.register("jept_action_bins")
 @dataclass
 class JeptActionBinsStep(ProcessorStep):
-    """Continuous ``action`` -> bin indices (long) over [low, high]; NaN-marked actions -> IGNORE_INDEX.
+    """Continuous ``action`` -> bin indices (long) over [low, high]; unlabelled frames -> IGNORE_INDEX.
 
-    Values outside the range are clipped into the end bins and counted (``num_clipped`` of ``num_values``).
-    A transition without an action (inference) passes through.
+    A frame is unlabelled where ``observation.action_labelled`` is 0 (mixes, see ``lerobot_jept.mixing``; the
+    key is removed here, it is not a model input; its window of frames starts where the action's does) or
+    where the action is NaN (mixes of format 1). Values outside the range are clipped into the end bins and
+    counted (``num_clipped`` of ``num_values``). A transition without an action (inference) passes through.
     """
 
     num_bins: int = 7
@@ -42,10 +45,21 @@ class JeptActionBinsStep(ProcessorStep):
     num_values: int = field(default=0, init=False)
 
     def __call__(self, transition):
+        observation = transition.get(TransitionKey.OBSERVATION) or {}
+        labelled = observation.get(ACTION_LABELLED)
+        if labelled is not None:
+            transition = dict(transition)
+            transition[TransitionKey.OBSERVATION] = {
+                k: v for k, v in observation.items() if k != ACTION_LABELLED
+            }
         action = transition.get(TransitionKey.ACTION)
         if action is None or not torch.is_tensor(action) or not action.is_floating_point():
             return transition
         finite = torch.isfinite(action)
+        if labelled is not None:  # (B, T_obs, 1) or (B, 1): the action's frames are its first T_act
+            steps = action.shape[1] if action.ndim == 3 else 1
+            mask = labelled.reshape(labelled.shape[0], -1)[:, :steps] > 0.5
+            finite = finite & mask.reshape(*action.shape[:-1], 1).to(finite.device)
         outside = finite & ((action < self.low) | (action > self.high))
         clipped = int(outside.sum())
         if clipped and not self.num_clipped:

@@ -1,7 +1,7 @@
 """``jept-relabel``: the BC+IDM baseline's labelling step. An ``idm`` checkpoint gives every unlabelled frame of a
-``_mix`` repo (``action`` NaN) the action bin centre it predicts from (o_t, o_{t+1}); labelled frames keep their
-actions unchanged. The result is an ordinary LeRobotDataset: every frame has a finite action, per-frame
-``pseudo_label`` (True where the IDM wrote the action), stats over all frames, and ``meta/jept_relabel.json``
+``_mix`` repo (``observation.action_labelled`` 0) the action bin centre it predicts from (o_t, o_{t+1}); labelled
+frames keep their actions unchanged. The result is an ordinary LeRobotDataset: every frame is labelled, a
+per-frame ``pseudo_label`` says where the IDM wrote the action, stats cover all frames, and ``meta/jept_relabel.json``
 with the IDM checkpoint and its accuracy on held-out labelled frames. BC is then ``dt_star`` trained on it.
 
     jept-relabel --policy.path=outputs/train/idm/checkpoints/last/pretrained_model \\
@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_jept.envs.spec import ACTION_LABELLED
+from lerobot_jept.mixing import labelled_mask
 from lerobot_jept.suite import BUILD_FILE, DatasetArg, PolicyArg
 
 RELABEL_FILE = "meta/jept_relabel.json"
@@ -48,11 +50,11 @@ class RelabelError(ValueError):
 
 
 def read_actions(dataset) -> np.ndarray:
-    """(N, A) float32 actions of every frame in index order (NaN where unlabelled)."""
+    """(N, A) float32 actions of every frame in index order (unlabelled frames: see ``labelled_mask``)."""
     if "action" not in dataset.meta.features:
         raise RelabelError(
             f"{dataset.repo_id} has no `action` column, so nothing tells labelled frames from unlabelled ones: "
-            "relabel the builder's ORG/NAME_mix repo (video frames carry NaN actions there)."
+            "relabel a mix (the builder's ORG/NAME_mix or jept-mix's output)."
         )
     return np.stack(dataset.hf_dataset.with_format("numpy")["action"]).astype(np.float32)
 
@@ -94,7 +96,7 @@ def predict_bins(policy, pre, dataset, indices: list[int], batch_size: int, desc
     )
     out = []
     for batch in tqdm(loader, desc=desc, unit="batch"):
-        batch.pop("action", None)  # the IDM predicts it; NaN-marked values need not be binned
+        batch.pop("action", None)  # the IDM predicts it
         out.append(policy.action_logits(pre(batch)).argmax(-1).cpu().numpy())
     return np.concatenate(out) if out else np.zeros((0, policy.config.resolved_action_dim), dtype=np.int64)
 
@@ -121,7 +123,7 @@ def heldout_frames(
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         heldout = LeRobotDataset(cfg.heldout_repo_id, root=cfg.heldout_root)
-        ok = np.isfinite(read_actions(heldout)).all(1)
+        ok = labelled_mask(heldout)
         return cfg.heldout_repo_id, cfg.heldout_root, sample(np.flatnonzero(ok)), "heldout_repo"
     train_cfg = Path(cfg.policy.path) / "train_config.json"
     trained_on = None
@@ -161,7 +163,8 @@ def idm_accuracy(policy, pre, cfg: RelabelConfig, labelled: np.ndarray, source) 
 
 def write_actions(root: Path, actions: np.ndarray) -> None:
     """Write ``actions`` (N, A), indexed by frame ``index``, as the ``action`` column of the data files (the
-    labelled rows get their own values back) and refresh the per-episode ``action`` stats."""
+    labelled rows get their own values back), mark every frame labelled and refresh the per-episode ``action``
+    stats."""
     import pandas as pd
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -172,6 +175,12 @@ def write_actions(root: Path, actions: np.ndarray) -> None:
         column = table["action"]
         fixed = pa.array(list(actions[table["index"].to_numpy()]), type=column.type)
         table = table.set_column(table.schema.get_field_index("action"), table.schema.field("action"), fixed)
+        if ACTION_LABELLED in table.column_names:
+            flag = table[ACTION_LABELLED]
+            ones = pa.array([np.ones(1, np.float32)] * len(table), type=flag.type)
+            table = table.set_column(
+                table.schema.get_field_index(ACTION_LABELLED), table.schema.field(ACTION_LABELLED), ones
+            )
         pq.write_table(table, path)
     for path in sorted((root / "meta/episodes").glob("*/*.parquet")):
         episodes = pd.read_parquet(path)
@@ -206,7 +215,7 @@ def relabel(cfg: RelabelConfig) -> dict:
     policy, pre = load_idm(cfg)
     source = LeRobotDataset(cfg.dataset.repo_id, root=cfg.dataset.root)
     actions = read_actions(source)
-    pseudo = ~np.isfinite(actions).all(1)
+    pseudo = ~labelled_mask(source)
     accuracy = idm_accuracy(policy, pre, cfg, ~pseudo, source)
     bins = predict_bins(
         policy,

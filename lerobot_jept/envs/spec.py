@@ -35,3 +35,11 @@ def observation_features(image_size: int, state_names: list[str]) -> dict:
 
 def action_feature(action_names: list[str]) -> dict:
     return {"dtype": "float32", "shape": (len(action_names),), "names": list(action_names)}
+
+
+# Per-frame marker of a real action in mixes of demos and action-free videos (see lerobot_jept.mixing).
+ACTION_LABELLED = "observation.action_labelled"
+
+
+def action_labelled_feature() -> dict:
+    return {"dtype": "float32", "shape": (1,), "names": ["labelled"]}

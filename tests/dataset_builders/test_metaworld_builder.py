@@ -53,18 +53,23 @@ def test_executed_actions_are_bin_centres(tiny_build):
     assert np.abs(actions[..., None] - centres).min(-1).max() < 1e-6
 
 
-def test_mix_marks_video_frames_nan_and_stats_use_labelled_frames_only(tiny_build):
+def test_mix_marks_video_frames_unlabelled_and_stats_use_labelled_frames_only(tiny_build):
     mix_root = lerobot_home() / "test/mw_tiny_mix"
     frames = pd.concat(pd.read_parquet(p) for p in sorted((mix_root / "data").glob("*/*.parquet")))
     actions = np.stack(frames["action"].to_numpy())
+    labelled = np.stack(frames["observation.action_labelled"].to_numpy()).reshape(-1)
     tasks = pd.read_parquet(mix_root / "meta/tasks.parquet")
     video_task_index = tasks.loc[task_description("drawer-close-v3"), "task_index"]
     is_video = (frames["task_index"] == video_task_index).to_numpy()
     assert is_video.any() and (~is_video).any()
-    assert np.isnan(actions[is_video]).all()
-    mix = load("test/mw_tiny_mix")  # LeRobot reads the missing actions back as NaN tensors
-    assert mix[len(mix) - 1]["action"].isnan().all() and not mix[0]["action"].isnan().any()
-    assert np.isfinite(actions[~is_video]).all()
+    assert (labelled == (~is_video).astype(np.float32)).all()
+    assert (actions[is_video] == 0).all() and np.isfinite(actions).all()  # the neutral action
+    mix = load("test/mw_tiny_mix")
+    assert mix[len(mix) - 1]["observation.action_labelled"].item() == 0.0
+    assert mix[0]["observation.action_labelled"].item() == 1.0
+    demo = load("test/mw_tiny_demo")  # demos carry the marker too, so LeRobot can merge them with a mix
+    assert demo.meta.features["observation.action_labelled"]["shape"] == (1,)
+    assert (np.asarray(demo.hf_dataset.with_format("numpy")["observation.action_labelled"]) == 1).all()
 
     stats = json.loads((mix_root / "meta/stats.json").read_text())["action"]
     labelled = actions[~is_video]

@@ -342,7 +342,9 @@ def test_idm_relabels_exactly_the_unlabelled_frames(tiny_build, tmp_path):
     before = np.stack(source.hf_dataset.with_format("numpy")["action"])
     after = np.stack(relabelled.hf_dataset.with_format("numpy")["action"])
     pseudo = np.asarray(relabelled.hf_dataset.with_format("numpy")["pseudo_label"]).reshape(-1)
-    unlabelled = ~np.isfinite(before).all(1)
+    marker = "observation.action_labelled"
+    unlabelled = np.asarray(source.hf_dataset.with_format("numpy")[marker]).reshape(-1) == 0
+    assert (np.asarray(relabelled.hf_dataset.with_format("numpy")[marker]) == 1).all()
     assert unlabelled.any() and (pseudo == unlabelled).all()
     assert before[~unlabelled].tobytes() == after[~unlabelled].tobytes()  # labelled frames untouched
     assert (

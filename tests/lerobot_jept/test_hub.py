@@ -120,8 +120,8 @@ from lerobot.policies.factory import make_pre_post_processors
 from lerobot_jept import JEPTPolicy
 
 ds = LeRobotDataset("{MIX}")
-actions = torch.stack(list(ds.hf_dataset["action"]))
-print("episodes", ds.num_episodes, "nan_frames", int(torch.isnan(actions).all(-1).sum()))
+labelled = torch.stack(list(ds.hf_dataset["observation.action_labelled"]))
+print("episodes", ds.num_episodes, "unlabelled_frames", int((labelled == 0).sum()))
 policy = JEPTPolicy.from_pretrained("{MODEL}")
 pre, post = make_pre_post_processors(policy.config, pretrained_path="{MODEL}")
 frame = ds[0]
@@ -135,8 +135,8 @@ print("action", tuple(action.shape))
 def test_datasets_policy_and_prompt_bank_load_by_repo_id(hub, tmp_path):
     out = run([sys.executable, "-c", LOAD_BY_REPO_ID], hub_env(hub, tmp_path), tmp_path)
     local = load(MIX)
-    nan_frames = int(torch.isnan(torch.stack(list(local.hf_dataset["action"]))).all(-1).sum())
-    assert f"episodes {local.num_episodes} nan_frames {nan_frames}" in out and nan_frames > 0
+    unlabelled = int((torch.stack(list(local.hf_dataset["observation.action_labelled"])) == 0).sum())
+    assert f"episodes {local.num_episodes} unlabelled_frames {unlabelled}" in out and unlabelled > 0
     assert "action (1, 4)" in out
     assert (tmp_path / "lerobot_home/hub").exists()  # fetched, not found locally
 

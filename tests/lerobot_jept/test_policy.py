@@ -48,12 +48,12 @@ def build_policy(tiny_build, **overrides):
 
 
 def mixed_batch(cfg, size=8, seed=0):
-    """A batch with both demo frames (actions) and video frames (NaN actions), as lerobot-train samples it."""
+    """A batch with both demo frames (actions) and video frames (no actions), as lerobot-train samples it."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     ds = load(MIX, delta_timestamps=resolve_delta_timestamps(cfg, LeRobotDatasetMetadata(MIX)))
     g = torch.Generator().manual_seed(seed)
-    labelled = torch.isfinite(torch.stack(list(ds.hf_dataset["action"]))).all(-1)
+    labelled = torch.stack(list(ds.hf_dataset["observation.action_labelled"])).reshape(-1) > 0.5
     pick = [torch.nonzero(labelled == flag).flatten() for flag in (True, False)]
     idx = [
         int(p[i])
@@ -61,7 +61,8 @@ def mixed_batch(cfg, size=8, seed=0):
         for i in torch.randperm(len(p), generator=g)[:n]
     ]
     batch = torch.utils.data.default_collate([ds[i] for i in idx])
-    assert torch.isnan(batch["action"]).any() and torch.isfinite(batch["action"]).any()
+    marker = batch["observation.action_labelled"]
+    assert (marker == 0).any() and (marker == 1).any()
     return batch
 
 
@@ -160,6 +161,33 @@ def test_action_bins_step_maps_nan_to_ignore_and_counts_clipping():
     assert out.tolist() == [[0, 3, 6, 4], [IGNORE_INDEX] * 4, [6, 0, 4, 2]]  # ties round half to even
     assert (step.num_clipped, step.num_values) == (2, 8)
     assert step({TransitionKey.ACTION: None})[TransitionKey.ACTION] is None  # inference: no action
+
+
+def test_action_bins_step_reads_the_label_marker_and_drops_it():
+    """observation.action_labelled over the observation window (k + 1 frames for jept) marks the action frames
+    (the first k); the marker never reaches the model."""
+    from lerobot.processor import TransitionKey
+
+    step = JeptActionBinsStep(num_bins=7, low=-1, high=1)
+    action = torch.zeros(2, 3, 4)  # (B, k, A): the neutral action everywhere
+    marker = torch.tensor([[1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])[..., None]  # (B, k + 1, 1)
+    out = step(
+        {TransitionKey.ACTION: action, TransitionKey.OBSERVATION: {"observation.action_labelled": marker}}
+    )
+    assert out[TransitionKey.OBSERVATION] == {}
+    labels = out[TransitionKey.ACTION]
+    assert (labels[:, :, 0] == IGNORE_INDEX).tolist() == [[False, True, False], [True, True, True]]
+    assert (labels[labels != IGNORE_INDEX] == 3).all()
+    idm = step(
+        {
+            TransitionKey.ACTION: torch.zeros(2, 4),
+            TransitionKey.OBSERVATION: {"observation.action_labelled": marker[:, :2]},
+        }
+    )
+    assert (idm[TransitionKey.ACTION][:, 0] == IGNORE_INDEX).tolist() == [
+        False,
+        True,
+    ]  # (B, A), frames [0, 1]
 
 
 def test_ema_update_moves_targets_and_only_targets(tiny_build):
