@@ -14,6 +14,7 @@ writer turns NaN inside list cells into nulls on merge, and per-episode stats of
 
 import json
 import shutil
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -108,3 +109,193 @@ def mix(
     stats["action"] = labelled_action_stats(tmp)
     write_stats(stats, tmp)
     return tmp
+
+
+# jept-mix ----------------------------------------------------------------------------------------------------
+
+BOOKKEEPING = {"timestamp", "frame_index", "episode_index", "index", "task_index"}
+
+
+@dataclass
+class MixConfig:
+    """``jept-mix``: a training mix from any LeRobotDatasets (local roots or Hub repo ids).
+
+    demo_repo_ids: labelled repos (``lerobot-record``, ported, or a builder's ``_demo``).
+    video_repo_ids: action-free repos (a builder's ``_video``, videos written through LeRobot's API, ...).
+    ignore_video_actions: a video repo that has an ``action`` column is refused unless this is true (its actions
+        are then treated as absent).
+    """
+
+    demo_repo_ids: list[str] = field(default_factory=list)
+    video_repo_ids: list[str] = field(default_factory=list)
+    output_repo_id: str = ""
+    demo_roots: list[str] | None = None
+    video_roots: list[str] | None = None
+    output_root: str | None = None  # default: $HF_LEROBOT_HOME/<output_repo_id>
+    ignore_video_actions: bool = False
+    push_to_hub: bool = False
+    private: bool = False
+
+
+class MixError(ValueError):
+    pass
+
+
+def _describe(feature: dict) -> str:
+    return f"{feature['dtype']} {tuple(feature['shape'])}"
+
+
+def check_compatible(demos: list, videos: list, ignore_video_actions: bool) -> None:
+    """Raise :class:`MixError` naming every difference between the repos' metadata that would stop the mix,
+    with how to fix it. ``demos`` / ``videos``: LeRobotDatasetMetadata."""
+    problems = []
+    first = (demos or videos)[0]
+    for meta in videos:
+        if "action" in meta.features and not ignore_video_actions:
+            problems.append(
+                f"{meta.repo_id} is given as video but has an `action` column: pass --ignore_video_actions=true "
+                "to treat its frames as action-free, or list it in --demo_repo_ids."
+            )
+    for meta in demos:
+        if "action" not in meta.features:
+            problems.append(
+                f"{meta.repo_id} is given as a demo repo but has no `action` column: list it in --video_repo_ids."
+            )
+    ignore = BOOKKEEPING | {"action", ACTION_LABELLED}
+    reference = {k: v for k, v in first.features.items() if k not in ignore}
+    for meta in [*demos, *videos][1:]:
+        if meta.fps != first.fps:
+            problems.append(
+                f"{meta.repo_id} runs at {meta.fps} fps, {first.repo_id} at {first.fps}: record or port them at one "
+                "frame rate (jept-mix does not resample)."
+            )
+        mine = {k: v for k, v in meta.features.items() if k not in ignore}
+        for key in sorted(set(reference) | set(mine)):
+            if key not in mine or key not in reference:
+                has, lacks = (first, meta) if key in reference else (meta, first)
+                problems.append(
+                    f"{has.repo_id} has `{key}` but {lacks.repo_id} has not: rename the camera or state key in one "
+                    "of them to match (`lerobot-edit-dataset` cannot rename; port it with the same key), or drop "
+                    f"it with `lerobot-edit-dataset --repo_id={has.repo_id} --operation.type=remove_feature "
+                    f"--operation.feature_names='[{key}]'`."
+                )
+            elif (
+                tuple(mine[key]["shape"]) != tuple(reference[key]["shape"])
+                or mine[key]["dtype"] != reference[key]["dtype"]
+            ):
+                what = (
+                    "record or resize them to one image size"
+                    if mine[key]["dtype"] in ("video", "image")
+                    else ("they must describe the same robot state")
+                )
+                problems.append(
+                    f"`{key}` is {_describe(reference[key])} in {first.repo_id} but {_describe(mine[key])} in "
+                    f"{meta.repo_id}: {what}."
+                )
+    actions = {tuple(m.features["action"]["shape"]) for m in demos if "action" in m.features}
+    if len(actions) > 1:
+        problems.append(
+            f"The demo repos' actions have different shapes {sorted(actions)}: mix repos of one robot."
+        )
+    if problems:
+        raise MixError("The repos cannot be mixed:\n- " + "\n- ".join(problems))
+
+
+def _tasks_of(meta, build_file: str = "meta/jept_build.json") -> list[str]:
+    """Task names of a repo for the split: the builder's names when it was built by jept-build-*, else its
+    task strings."""
+    path = Path(meta.root) / build_file
+    strings = list(meta.tasks.index)
+    if path.is_file():
+        build = json.loads(path.read_text())
+        names = {d: t for t, d in build.get("task_descriptions", {}).items()}
+        return [names.get(s, s) for s in strings]
+    return strings
+
+
+def run_mix(cfg: MixConfig) -> Path:
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.utils.constants import HF_LEROBOT_HOME
+
+    if not cfg.output_repo_id or not (cfg.demo_repo_ids or cfg.video_repo_ids):
+        raise MixError(
+            "Pass --demo_repo_ids='[...]', --video_repo_ids='[...]' and --output_repo_id=ORG/NAME_mix."
+        )
+    if not cfg.demo_repo_ids:
+        raise MixError("A mix needs at least one labelled repo in --demo_repo_ids.")
+
+    def metas(ids, roots):
+        roots = roots or [None] * len(ids)
+        if len(roots) != len(ids):
+            raise MixError("Give one root per repo id (or none).")
+        return [LeRobotDatasetMetadata(r, root=root) for r, root in zip(ids, roots, strict=True)]
+
+    demos, videos = metas(cfg.demo_repo_ids, cfg.demo_roots), metas(cfg.video_repo_ids, cfg.video_roots)
+    check_compatible(demos, videos, cfg.ignore_video_actions)
+    out = Path(cfg.output_root) if cfg.output_root else HF_LEROBOT_HOME / cfg.output_repo_id
+    if out.exists():
+        raise MixError(f"{out} already exists: choose another --output_repo_id/--output_root, or delete it.")
+    staging = out.with_name(out.name + ".staging")
+    action = demos[0].features["action"]
+    done = mix(
+        [(m.repo_id, Path(m.root)) for m in demos],
+        [(m.repo_id, Path(m.root)) for m in videos],
+        cfg.output_repo_id,
+        staging,
+        action,
+    )
+    protocols = [
+        json.loads(p.read_text()).get("protocol")
+        for m in [*demos, *videos]
+        if (p := Path(m.root) / "meta/jept_build.json").is_file()
+    ]
+    record = {
+        "repo_id": cfg.output_repo_id,
+        "split": {
+            "demo": sorted({t for m in demos for t in _tasks_of(m)}),
+            "video": sorted({t for m in videos for t in _tasks_of(m)}),
+            "unseen": [],
+        },
+        "repos": {"mix": cfg.output_repo_id},
+        "sources": {
+            "demo": [{"repo_id": m.repo_id, "robot_type": m.robot_type} for m in demos],
+            "video": [{"repo_id": m.repo_id, "robot_type": m.robot_type} for m in videos],
+        },
+        "mix_format": MIX_FORMAT,
+    }
+    if protocols and protocols[0]:
+        record["protocol"] = protocols[0]
+    (done / "meta/jept_build.json").write_text(json.dumps(record, indent=2))
+    done.rename(out)
+    shutil.rmtree(staging, ignore_errors=True)
+    print(
+        f"Wrote {cfg.output_repo_id} ({out}): demo tasks {record['split']['demo']}, video tasks {record['split']['video']}."
+    )
+    if cfg.push_to_hub:
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        try:
+            LeRobotDataset(cfg.output_repo_id, root=out).push_to_hub(
+                tags=["jept", "mix"], private=cfg.private
+            )
+        except Exception as err:  # network, auth: whatever the Hub client raises
+            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise MixError(
+                f"Pushing {cfg.output_repo_id} failed ({type(err).__name__}: {reason}); the mix is complete under "
+                f"{out}. Log in (`hf auth login`) and push it with LeRobotDataset.push_to_hub."
+            ) from err
+    return out
+
+
+def main() -> None:
+    import logging
+    import sys
+
+    import draccus
+
+    logging.basicConfig(level=logging.WARNING)
+    cfg = draccus.parse(MixConfig)
+    try:
+        run_mix(cfg)
+    except MixError as err:
+        sys.exit(f"jept-mix: {err}")

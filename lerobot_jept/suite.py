@@ -204,7 +204,11 @@ def run_suite(cfg: SuiteConfig) -> dict:
             f"--probe_repo_id measures JEPT's prompt embedding and predicted next embedding; {cfg.policy.path} is a "
             f"{policy_type!r} policy. Drop --probe_repo_id for it."
         )
-    prompt_repo_id = cfg.prompt_repo_id or build["repos"]["prompts"]
+    prompt_repo_id = cfg.prompt_repo_id or build["repos"].get("prompts")
+    if not prompt_repo_id:
+        raise SuiteError(
+            f"{cfg.dataset.repo_id} names no prompt bank (a jept-mix output): pass --prompt_repo_id=ORG/NAME_prompts."
+        )
     tasks = [(t, role) for role in ("demo", "video", "unseen") for t in split[role]]
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
