@@ -23,7 +23,7 @@ from lerobot_jept.discretization import bin_centres
 
 PROMPT_VIDEO = "observation.prompt_video"
 PROMPT_MASK = "observation.prompt_video_mask"
-IGNORE_INDEX = -100  # action labels that take no part in the action loss (NaN-marked or padded)
+IGNORE_INDEX = -100  # action labels that take no part in the action loss (unlabelled or padded frames)
 
 
 def transformer_kwargs(config: JEPTConfig, which: str) -> dict:
@@ -178,7 +178,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         self.num_updates += 1
 
     def action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
-        """Bin indices (B, T, A) from the discretised ``action``; IGNORE_INDEX where NaN-marked or padded."""
+        """Bin indices (B, T, A) from the discretised ``action``; IGNORE_INDEX where unlabelled or padded."""
         actions = batch.get(ACTION)
         if actions is None:  # a dataset without actions: no action loss
             return torch.full(shape, IGNORE_INDEX, dtype=torch.long, device=self.bin_centres.device)
