@@ -51,8 +51,35 @@ def add_labels(dataset, out: Path, repo_id: str, labelled: bool, action_feature:
         shutil.rmtree(bare, ignore_errors=True)
         dataset = remove_feature(dataset, replaced, output_dir=bare, repo_id=repo_id)
     modify_features(dataset, add_features=add, output_dir=out, repo_id=repo_id)
+    fill_episode_stats(out, list(add))
     if replaced:
         shutil.rmtree(bare, ignore_errors=True)
+
+
+def fill_episode_stats(root: Path, keys: list[str]) -> None:
+    """Write the per-episode stats (``stats/<key>/<stat>`` in ``meta/episodes``) of the numeric features ``keys``
+    from the data files. LeRobot's ``add_features``/``modify_features`` copy the episodes metadata as it was, so
+    an added feature would have none, and ``delete_episodes``/``split`` stop on the missing values."""
+    import pandas as pd
+    from lerobot.datasets.compute_stats import get_feature_stats
+
+    data = pd.concat(
+        [pd.read_parquet(p, columns=["index", *keys]) for p in sorted((root / "data").glob("*/*.parquet"))]
+    )
+    data = data.set_index("index").sort_index()
+    values = {k: np.stack(data[k].to_numpy()).reshape(len(data), -1) for k in keys}
+    for path in sorted((root / "meta/episodes").glob("*/*.parquet")):
+        episodes = pd.read_parquet(path)
+        spans = list(zip(episodes["dataset_from_index"], episodes["dataset_to_index"], strict=True))
+        for key in keys:
+            stats = [
+                get_feature_stats(values[key][start:stop], axis=0, keepdims=False) for start, stop in spans
+            ]
+            for name in stats[0]:
+                dtype = np.int64 if name == "count" else np.float64
+                column = [np.asarray(st[name], dtype).reshape(-1) for st in stats]
+                episodes[f"stats/{key}/{name}"] = pd.Series(column, dtype=object)
+        episodes.to_parquet(path, index=False)
 
 
 def labelled_action_stats(root: Path) -> dict:
@@ -88,7 +115,7 @@ def mix(
 
     shutil.rmtree(staging, ignore_errors=True)
     sources = []
-    robot_type = None
+    robot_type, names = None, None
     for i, (rid, root, labelled) in enumerate(
         [(r, p, True) for r, p in demos] + [(r, p, False) for r, p in videos]
     ):
@@ -96,9 +123,14 @@ def mix(
         robot_type = robot_type or dataset.meta.robot_type
         part = staging / f"part{i}"
         add_labels(dataset, part, f"{repo_id}_part{i}", labelled, action_feature)
-        info_path = part / "meta/info.json"  # one robot type for LeRobot's aggregation (sources are recorded)
+        # One robot type and one set of feature names for LeRobot's aggregation (the sources are recorded;
+        # shapes and dtypes were checked to agree, names are labels only).
+        info_path = part / "meta/info.json"
         info = json.loads(info_path.read_text())
         info["robot_type"] = robot_type
+        names = names or {k: f.get("names") for k, f in info["features"].items()}
+        for key, feature in info["features"].items():
+            feature["names"] = names.get(key, feature.get("names"))
         info_path.write_text(json.dumps(info, indent=4))
         sources.append((f"{repo_id}_part{i}", part))
     tmp = staging / "mix"

@@ -21,7 +21,7 @@ import torch
 from tqdm import tqdm
 
 from lerobot_jept.envs.spec import ACTION_LABELLED
-from lerobot_jept.mixing import labelled_mask
+from lerobot_jept.mixing import fill_episode_stats, labelled_mask
 from lerobot_jept.suite import BUILD_FILE, DatasetArg, PolicyArg
 
 RELABEL_FILE = "meta/jept_relabel.json"
@@ -165,10 +165,8 @@ def write_actions(root: Path, actions: np.ndarray) -> None:
     """Write ``actions`` (N, A), indexed by frame ``index``, as the ``action`` column of the data files (the
     labelled rows get their own values back), mark every frame labelled and refresh the per-episode ``action``
     stats."""
-    import pandas as pd
     import pyarrow as pa
     import pyarrow.parquet as pq
-    from lerobot.datasets.compute_stats import get_feature_stats
 
     for path in sorted((root / "data").glob("*/*.parquet")):
         table = pq.read_table(path)
@@ -182,20 +180,9 @@ def write_actions(root: Path, actions: np.ndarray) -> None:
                 table.schema.get_field_index(ACTION_LABELLED), table.schema.field(ACTION_LABELLED), ones
             )
         pq.write_table(table, path)
-    for path in sorted((root / "meta/episodes").glob("*/*.parquet")):
-        episodes = pd.read_parquet(path)
-        stats = [
-            get_feature_stats(actions[start:stop], axis=0, keepdims=False)
-            for start, stop in zip(episodes["dataset_from_index"], episodes["dataset_to_index"], strict=True)
-        ]
-        for name in stats[0]:
-            column = f"stats/action/{name}"
-            if column in episodes:
-                dtype = np.int64 if name == "count" else np.float64
-                episodes[column] = pd.Series(
-                    [np.asarray(s[name], dtype).reshape(-1) for s in stats], dtype=object
-                )
-        episodes.to_parquet(path, index=False)
+    fill_episode_stats(
+        root, ["action", *([ACTION_LABELLED] if ACTION_LABELLED in table.column_names else [])]
+    )
 
 
 def relabel(cfg: RelabelConfig) -> dict:
