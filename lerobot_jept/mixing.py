@@ -82,6 +82,40 @@ def fill_episode_stats(root: Path, keys: list[str]) -> None:
         episodes.to_parquet(path, index=False)
 
 
+def push_dataset(repo_id: str, root: Path, tags: list[str], private: bool, error: type[Exception]) -> None:
+    """LeRobot's ``push_to_hub`` of the complete repo at ``root``; a failure (network, auth) raises ``error``
+    with one line saying the local repo is intact and how to push it again."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    try:
+        LeRobotDataset(repo_id, root=root).push_to_hub(tags=tags, private=private)
+    except Exception as err:  # whatever the Hub client raises
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise error(
+            f"Pushing {repo_id} failed ({type(err).__name__}: {reason}); the repo is complete under {root}. Log in "
+            "(`hf auth login`) and push it again with LeRobotDataset(repo_id, root=...).push_to_hub()."
+        ) from err
+
+
+def _video_codecs(info: dict) -> dict[str, tuple]:
+    return {
+        k: (f.get("info", {}).get("video.codec"), f.get("info", {}).get("video.pix_fmt"))
+        for k, f in info["features"].items()
+        if f["dtype"] == "video"
+    }
+
+
+def _reencode(repo_id: str, root: Path, codecs: dict[str, tuple]) -> None:
+    """Re-encode a staged repo's videos (LeRobot's ``reencode_dataset``) to the first source's codec."""
+    from lerobot.configs.video import RGBEncoderConfig
+    from lerobot.datasets.dataset_tools import reencode_dataset
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    codec, pix_fmt = next(iter(codecs.values()))
+    encoder = RGBEncoderConfig(vcodec={"av1": "libsvtav1"}.get(codec, codec), pix_fmt=pix_fmt or "yuv420p")
+    reencode_dataset(LeRobotDataset(repo_id, root=root), rgb_encoder=encoder)
+
+
 def labelled_action_stats(root: Path) -> dict:
     """LeRobot stats of ``action`` over the labelled frames of the repo at ``root``."""
     import pandas as pd
@@ -115,7 +149,7 @@ def mix(
 
     shutil.rmtree(staging, ignore_errors=True)
     sources = []
-    robot_type, names = None, None
+    robot_type, names, codecs = None, None, None
     for i, (rid, root, labelled) in enumerate(
         [(r, p, True) for r, p in demos] + [(r, p, False) for r, p in videos]
     ):
@@ -132,6 +166,9 @@ def mix(
         for key, feature in info["features"].items():
             feature["names"] = names.get(key, feature.get("names"))
         info_path.write_text(json.dumps(info, indent=4))
+        codecs = codecs or _video_codecs(info)
+        if _video_codecs(info) != codecs:  # videos are concatenated: one codec and pixel format for all
+            _reencode(f"{repo_id}_part{i}", part, codecs)
         sources.append((f"{repo_id}_part{i}", part))
     tmp = staging / "mix"
     aggregate_datasets(
@@ -233,16 +270,10 @@ def check_compatible(demos: list, videos: list, ignore_video_actions: bool) -> N
         raise MixError("The repos cannot be mixed:\n- " + "\n- ".join(problems))
 
 
-def _tasks_of(meta, build_file: str = "meta/jept_build.json") -> list[str]:
-    """Task names of a repo for the split: the builder's names when it was built by jept-build-*, else its
-    task strings."""
-    path = Path(meta.root) / build_file
-    strings = list(meta.tasks.index)
-    if path.is_file():
-        build = json.loads(path.read_text())
-        names = {d: t for t, d in build.get("task_descriptions", {}).items()}
-        return [names.get(s, s) for s in strings]
-    return strings
+def _builds(metas: list) -> list[dict]:
+    """The builders' metadata (meta/jept_build.json) of the repos that have it."""
+    paths = [Path(m.root) / "meta/jept_build.json" for m in metas]
+    return [json.loads(p.read_text()) for p in paths if p.is_file()]
 
 
 def run_mix(cfg: MixConfig) -> Path:
@@ -276,18 +307,17 @@ def run_mix(cfg: MixConfig) -> Path:
         staging,
         action,
     )
-    protocols = [
-        json.loads(p.read_text()).get("protocol")
-        for m in [*demos, *videos]
-        if (p := Path(m.root) / "meta/jept_build.json").is_file()
-    ]
+    builds = _builds([*demos, *videos])
+    # task strings -> the builders' task names, where a builder described the task (any source's build)
+    names = {d: t for b in builds for t, d in b.get("task_descriptions", {}).items()}
     record = {
         "repo_id": cfg.output_repo_id,
         "split": {
-            "demo": sorted({t for m in demos for t in _tasks_of(m)}),
-            "video": sorted({t for m in videos for t in _tasks_of(m)}),
+            "demo": sorted({names.get(s, s) for m in demos for s in m.tasks.index}),
+            "video": sorted({names.get(s, s) for m in videos for s in m.tasks.index}),
             "unseen": [],
         },
+        "task_descriptions": {names.get(s, s): s for m in [*demos, *videos] for s in m.tasks.index},
         "repos": {"mix": cfg.output_repo_id},
         "sources": {
             "demo": [{"repo_id": m.repo_id, "robot_type": m.robot_type} for m in demos],
@@ -295,8 +325,8 @@ def run_mix(cfg: MixConfig) -> Path:
         },
         "mix_format": MIX_FORMAT,
     }
-    if protocols and protocols[0]:
-        record["protocol"] = protocols[0]
+    if builds and builds[0].get("protocol"):
+        record["protocol"] = builds[0]["protocol"]
     (done / "meta/jept_build.json").write_text(json.dumps(record, indent=2))
     done.rename(out)
     shutil.rmtree(staging, ignore_errors=True)
@@ -304,18 +334,7 @@ def run_mix(cfg: MixConfig) -> Path:
         f"Wrote {cfg.output_repo_id} ({out}): demo tasks {record['split']['demo']}, video tasks {record['split']['video']}."
     )
     if cfg.push_to_hub:
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-        try:
-            LeRobotDataset(cfg.output_repo_id, root=out).push_to_hub(
-                tags=["jept", "mix"], private=cfg.private
-            )
-        except Exception as err:  # network, auth: whatever the Hub client raises
-            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            raise MixError(
-                f"Pushing {cfg.output_repo_id} failed ({type(err).__name__}: {reason}); the mix is complete under "
-                f"{out}. Log in (`hf auth login`) and push it with LeRobotDataset.push_to_hub."
-            ) from err
+        push_dataset(cfg.output_repo_id, out, ["jept", "mix"], cfg.private, MixError)
     return out
 
 

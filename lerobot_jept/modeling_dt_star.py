@@ -52,10 +52,7 @@ class DTStarPolicy(ContextActionPolicy):
 
     config_class = DTStarConfig
     name = "dt_star"
-
-    def __init__(self, config: DTStarConfig, **kwargs):
-        config.validate_features()
-        super().__init__(config, DTStar(config))
+    model_class = DTStar
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model

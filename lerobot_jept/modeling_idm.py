@@ -49,10 +49,7 @@ class IDMPolicy(DiscreteActionPolicy):
 
     config_class = IDMConfig
     name = "idm"
-
-    def __init__(self, config: IDMConfig, **kwargs):
-        config.validate_features()
-        super().__init__(config, IDM(config))
+    model_class = IDM
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model

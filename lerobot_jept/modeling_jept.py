@@ -117,10 +117,7 @@ class JEPTPolicy(DiscreteActionPolicy):
 
     config_class = JEPTConfig
     name = "jept"
-
-    def __init__(self, config: JEPTConfig, **kwargs):
-        config.validate_features()
-        super().__init__(config, JEPT(config))
+    model_class = JEPT
 
     # Training ---------------------------------------------------------------------------------------------
 

@@ -109,10 +109,7 @@ class Vid2RobotPolicy(ContextActionPolicy):
 
     config_class = Vid2RobotConfig
     name = "vid2robot"
-
-    def __init__(self, config: Vid2RobotConfig, **kwargs):
-        config.validate_features()
-        super().__init__(config, Vid2Robot(config))
+    model_class = Vid2Robot
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model

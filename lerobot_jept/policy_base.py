@@ -130,11 +130,13 @@ class DiscreteActionPolicy(PreTrainedPolicy):
 
     config_class = JEPTConfig  # every subclass sets its own (LeRobot requires both on every class)
     name = "discrete_action_policy"
+    model_class: type[VisualPolicyNet]  # the network, built from the config
 
-    def __init__(self, config: JEPTConfig, model: VisualPolicyNet):
+    def __init__(self, config: JEPTConfig, **kwargs):
         super().__init__(config)
+        config.validate_features()
         self.config = config
-        self.model = model
+        self.model = self.model_class(config)
         # Optimizer steps taken; persistent so a resumed run continues any step-driven schedule.
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
         centres = bin_centres(config.num_action_bins, config.action_low, config.action_high)

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_jept.mixing import push_dataset
 from lerobot_jept.prompts import resize_frames
 
 VIDEO_SUFFIXES = (".mp4", ".webm", ".mov", ".mkv", ".avi", ".m4v")
@@ -164,18 +165,7 @@ def make_prompt_bank(cfg: PromptVideosConfig) -> Path:
     tasks = sorted({t for _, t in files})
     print(f"Wrote {len(files)} prompt videos ({', '.join(tasks)}) to {cfg.output_repo_id} ({out}).")
     if cfg.push_to_hub:
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-        try:
-            LeRobotDataset(cfg.output_repo_id, root=out).push_to_hub(
-                tags=["jept", "prompts"], private=cfg.private
-            )
-        except Exception as err:  # network, auth: whatever the Hub client raises
-            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            raise PromptVideosError(
-                f"Pushing {cfg.output_repo_id} failed ({type(err).__name__}: {reason}); the bank is complete "
-                f"under {out}. Log in (`hf auth login`) and run the command with --push_to_hub=true again."
-            ) from err
+        push_dataset(cfg.output_repo_id, out, ["jept", "prompts"], cfg.private, PromptVideosError)
     return out
 
 

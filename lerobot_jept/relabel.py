@@ -21,7 +21,7 @@ import torch
 from tqdm import tqdm
 
 from lerobot_jept.envs.spec import ACTION_LABELLED
-from lerobot_jept.mixing import fill_episode_stats, labelled_mask
+from lerobot_jept.mixing import fill_episode_stats, labelled_mask, push_dataset
 from lerobot_jept.suite import BUILD_FILE, DatasetArg, PolicyArg
 
 RELABEL_FILE = "meta/jept_relabel.json"
@@ -239,15 +239,7 @@ def relabel(cfg: RelabelConfig) -> dict:
         f"{accuracy['whole']:.3f}, per dimension {[round(a, 3) for a in accuracy['per_dim']]}"
     )
     if cfg.push_to_hub:
-        dataset = LeRobotDataset(cfg.output_repo_id, root=out)
-        try:
-            dataset.push_to_hub(tags=["jept", "idm-relabelled"], private=cfg.private)
-        except Exception as err:  # network, auth: whatever the Hub client raises
-            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            raise RelabelError(
-                f"Pushing {cfg.output_repo_id} failed ({type(err).__name__}: {reason}); the relabelled repo is "
-                f"complete under {out}. Log in (`hf auth login`) and push it with LeRobotDataset.push_to_hub."
-            ) from err
+        push_dataset(cfg.output_repo_id, out, ["jept", "idm-relabelled"], cfg.private, RelabelError)
     return record
 
 

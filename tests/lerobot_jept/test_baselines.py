@@ -16,7 +16,7 @@ from lerobot_jept.configuration_jept import SMALL_CPU_OVERRIDES
 from lerobot_jept.modeling_jept import IGNORE_INDEX
 from lerobot_jept.suite import PAPER_SPLIT
 from tests.conftest import load
-from tests.lerobot_jept.test_end_to_end import MIX, PROMPTS, run
+from tests.lerobot_jept.test_end_to_end import MIX, PROMPTS, lerobot_eval, run
 from tests.lerobot_jept.test_policy import mixed_batch
 
 NO_DROPOUT = dict(frame_perceiver_dropout=0.0, prompt_perceiver_dropout=0.0, predictor_dropout=0.0)
@@ -293,24 +293,7 @@ def test_baseline_trains_and_evaluates_with_lerobot(tiny_build, tmp_path, policy
     model, log = train(tmp_path, policy_type, MIX)
     assert json.loads((model / "config.json").read_text())["type"] == policy_type
     assert "loss_act:" in log and "loss_obs" not in log
-    run(
-        [
-            "lerobot-eval",
-            f"--policy.path={model}",
-            "--env.type=jept_metaworld",
-            "--env.task=handle-press-v3",
-            "--env.image_size=64",
-            "--env.episode_length=10",
-            f"--env.prompt_repo_id={PROMPTS}",
-            "--env.prompt_max_frames=4",
-            "--eval.n_episodes=1",
-            "--eval.batch_size=1",
-            "--policy.device=cpu",
-            f"--output_dir={tmp_path / 'eval'}",
-        ],
-        tmp_path,
-    )
-    assert json.loads((tmp_path / "eval/eval_info.json").read_text())["overall"]["n_episodes"] == 1
+    assert lerobot_eval(model, tmp_path / "eval", tmp_path)["overall"]["n_episodes"] == 1
     run(
         [
             "jept-eval-suite",
@@ -366,21 +349,9 @@ def test_idm_relabels_exactly_the_unlabelled_frames(tiny_build, tmp_path):
     _, log = train(tmp_path, "dt_star", out, 2, "--log_freq=1")
     fractions = {float(p.split(":")[1]) for p in log.split() if p.startswith("labelled_fraction:")}
     assert fractions == {1.0}
-    again = run_fails(
+    again = run(
         ["jept-relabel", f"--policy.path={model}", f"--dataset.repo_id={MIX}", f"--output_repo_id={out}"],
         tmp_path,
+        ok=False,
     )
     assert "already exists" in again
-
-
-def run_fails(args, cwd) -> str:
-    import os
-    import subprocess
-
-    from tests.lerobot_jept.test_end_to_end import BIN
-
-    proc = subprocess.run(
-        [str(BIN / args[0]), *args[1:]], cwd=cwd, capture_output=True, text=True, env=os.environ.copy()
-    )
-    assert proc.returncode != 0
-    return proc.stdout + proc.stderr

@@ -24,12 +24,40 @@ CONFIG = Path(__file__).parents[2] / "examples/configs/train_jept_small_cpu.json
 TINY_TRAIN = ["--batch_size=4", "--num_workers=0", "--policy.max_prompt_length=4", "--log_freq=2"]
 
 
-def run(args: list[str], cwd: Path) -> str:
+def run(args: list[str], cwd: Path, ok: bool = True) -> str:
+    """Run one of the venv's commands; it must succeed (``ok``) or fail. Returns its output."""
     proc = subprocess.run(
         [str(BIN / args[0]), *args[1:]], cwd=cwd, capture_output=True, text=True, env=os.environ.copy()
     )
-    assert proc.returncode == 0, f"{args[0]} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    if ok:
+        assert proc.returncode == 0, f"{args[0]} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    else:
+        assert proc.returncode != 0, f"{args[0]} should have failed"
     return proc.stdout + proc.stderr
+
+
+def lerobot_eval(
+    model: Path, out: Path, cwd: Path, prompts: str = PROMPTS, episodes: int = 1, steps: int = 10
+) -> dict:
+    """``lerobot-eval`` of a checkpoint on the unseen handle-press-v3 of the tiny build; its eval_info.json."""
+    run(
+        [
+            "lerobot-eval",
+            f"--policy.path={model}",
+            "--env.type=jept_metaworld",
+            "--env.task=handle-press-v3",
+            "--env.image_size=64",
+            f"--env.episode_length={steps}",
+            f"--env.prompt_repo_id={prompts}",
+            "--env.prompt_max_frames=4",
+            f"--eval.n_episodes={episodes}",
+            f"--eval.batch_size={episodes}",
+            "--policy.device=cpu",
+            f"--output_dir={out}",
+        ],
+        cwd,
+    )
+    return json.loads((out / "eval_info.json").read_text())
 
 
 def train(tmp: Path, repo: str, steps: int, *extra: str) -> tuple[Path, str]:
@@ -97,24 +125,7 @@ def test_trains_on_demos_alone_and_on_videos_alone(tiny_build, tmp_path, repo, l
 def test_lerobot_eval_reports_success_and_writes_videos(trained):
     tmp, out, _ = trained
     eval_dir = tmp / "eval"
-    run(
-        [
-            "lerobot-eval",
-            f"--policy.path={out}/checkpoints/last/pretrained_model",
-            "--env.type=jept_metaworld",
-            "--env.task=handle-press-v3",
-            "--env.image_size=64",
-            "--env.episode_length=20",
-            f"--env.prompt_repo_id={PROMPTS}",
-            "--env.prompt_max_frames=4",
-            "--eval.n_episodes=2",
-            "--eval.batch_size=2",
-            "--policy.device=cpu",
-            f"--output_dir={eval_dir}",
-        ],
-        tmp,
-    )
-    info = json.loads((eval_dir / "eval_info.json").read_text())
+    info = lerobot_eval(out / "checkpoints/last/pretrained_model", eval_dir, tmp, episodes=2, steps=20)
     assert info["overall"]["n_episodes"] == 2
     assert 0.0 <= info["overall"]["pc_success"] <= 100.0
     assert len(list((eval_dir / "videos").rglob("*.mp4"))) == 2

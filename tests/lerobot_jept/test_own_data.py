@@ -12,8 +12,7 @@ from lerobot_jept.envs.metaworld import task_description
 from lerobot_jept.mixing import MixConfig, MixError, run_mix
 from lerobot_jept.prompt_videos import PromptVideosConfig, PromptVideosError, make_prompt_bank
 from tests.conftest import load
-from tests.lerobot_jept.test_baselines import run_fails
-from tests.lerobot_jept.test_end_to_end import CONFIG, MIX, TINY_TRAIN, run
+from tests.lerobot_jept.test_end_to_end import CONFIG, MIX, TINY_TRAIN, lerobot_eval, run
 
 MARKER = "observation.action_labelled"
 DEMO_TASKS = {task_description(t) for t in ("button-press-v3", "reach-v3")}
@@ -280,8 +279,10 @@ def test_own_data_the_whole_way(foreign_video, tmp_path):
     assert labelled.sum() == demo.meta.total_frames
     actions = np.stack(mix.hf_dataset.with_format("numpy")["action"])
     np.testing.assert_allclose(mix.meta.stats["action"]["mean"], actions[labelled].mean(0), atol=1e-5)
-    again = run_fails(
-        ["jept-mix", "--demo_repo_ids=[test/mw_tiny_demo]", "--output_repo_id=test/own_mix"], tmp_path
+    again = run(
+        ["jept-mix", "--demo_repo_ids=[test/mw_tiny_demo]", "--output_repo_id=test/own_mix"],
+        tmp_path,
+        ok=False,
     )
     assert "already exists" in again
 
@@ -313,21 +314,6 @@ def test_own_data_the_whole_way(foreign_video, tmp_path):
         ],
         tmp_path,
     )
-    run(
-        [
-            "lerobot-eval",
-            f"--policy.path={out}/checkpoints/last/pretrained_model",
-            "--env.type=jept_metaworld",
-            "--env.task=handle-press-v3",
-            "--env.image_size=64",
-            "--env.episode_length=10",
-            "--env.prompt_repo_id=test/own_handle_prompts",
-            "--env.prompt_max_frames=4",
-            "--eval.n_episodes=1",
-            "--eval.batch_size=1",
-            "--policy.device=cpu",
-            f"--output_dir={tmp_path / 'eval'}",
-        ],
-        tmp_path,
-    )
-    assert json.loads((tmp_path / "eval/eval_info.json").read_text())["overall"]["n_episodes"] == 1
+    model = out / "checkpoints/last/pretrained_model"
+    info = lerobot_eval(model, tmp_path / "eval", tmp_path, prompts="test/own_handle_prompts")
+    assert info["overall"]["n_episodes"] == 1
