@@ -175,7 +175,10 @@ def write_actions(root: Path, actions: np.ndarray) -> None:
         table = table.set_column(table.schema.get_field_index("action"), table.schema.field("action"), fixed)
         if ACTION_LABELLED in table.column_names:
             flag = table[ACTION_LABELLED]
-            ones = pa.array([np.ones(1, np.float32)] * len(table), type=flag.type)
+            one = (
+                np.ones(1, np.float32) if pa.types.is_list(flag.type) else np.float32(1)
+            )  # (1,) may be scalar
+            ones = pa.array([one] * len(table), type=flag.type)
             table = table.set_column(
                 table.schema.get_field_index(ACTION_LABELLED), table.schema.field(ACTION_LABELLED), ones
             )

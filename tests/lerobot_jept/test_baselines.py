@@ -344,6 +344,20 @@ def test_idm_relabels_exactly_the_unlabelled_frames(tiny_build, tmp_path):
     )
     assert all(torch.isfinite(relabelled[i]["action"]).all() for i in range(len(relabelled)))  # loads in full
     assert (relabelled.root / "meta/jept_build.json").is_file()
+    # LeRobot's own tools keep it whole (the relabelled repo is an ordinary one)
+    run(
+        [
+            "lerobot-edit-dataset",
+            f"--repo_id={out}",
+            "--new_repo_id=test/idm_edited",
+            "--operation.type=delete_episodes",
+            "--operation.episode_indices=[0]",
+        ],
+        tmp_path,
+    )
+    edited = load("test/idm_edited")
+    assert edited.meta.total_episodes == relabelled.meta.total_episodes - 1
+    assert all(torch.isfinite(edited[i]["action"]).all() for i in range(len(edited)))
     assert isinstance(LeRobotDataset(out), LeRobotDataset)
     # BC = dt_star on the relabelled repo: every frame is labelled now
     _, log = train(tmp_path, "dt_star", out, 2, "--log_freq=1")
