@@ -22,18 +22,9 @@ from pathlib import Path
 import draccus
 import numpy as np
 
-from lerobot_jept.suite import PAPER_SPLIT, summarise
+from lerobot_jept.suite import PAPER_SPLIT, PAPER_TABLE1_ALL, summarise
 
-# The paper's Table 1 (Meta-World, its Table 7 split) and Table 3 (robosuite), success %.
-PAPER_TABLE1 = {
-    "Vid2Robot-D": [51.8, 4.7, 10.0, 0.0, 4.0, 4.0, 28.2, 4.5],
-    "Vid2Robot-M": [46.3, 28.7, 22.0, 4.0, 8.0, 14.0, 37.5, 12.0],
-    "BC+IDM": [49.5, 8.3, 8.0, 0.0, 0.0, 4.0, 28.9, 3.0],
-    "JEPT+MWM": [44.5, 21.3, 18.0, 4.0, 2.0, 14.0, 32.9, 9.5],
-    "DT*": [61.3, 13.0, 6.0, 0.0, 0.0, 0.0, 37.1, 1.5],
-    "JEPT": [51.3, 31.7, 28.0, 10.0, 14.0, 22.0, 41.5, 18.5],
-}
-TABLE1_ROWS = ["T_demo", "T_vid", *PAPER_SPLIT["unseen"], "Seen average", "Unseen average"]
+# The paper's Table 3 (robosuite), success %; Table 1 lives with the suite.
 PAPER_TABLE3 = {
     "Vid2Robot-D": [26.8, 4.0, 4.0, 0.0, 0.0, 0.0, 15.5, 1.0],
     "Vid2Robot-M": [20.7, 11.6, 16.0, 2.0, 4.0, 0.0, 16.1, 5.5],
@@ -73,20 +64,18 @@ def _key(name: str) -> str:
 
 def paper_columns(simulator: str, split: dict) -> tuple[dict[str, dict[str, float]], str] | None:
     """The paper's table for this split (Table 1 for the Table 7 split, Table 3 for the default robosuite one)."""
-    if simulator == "metaworld" and {k: sorted(v) for k, v in split.items()} == {
-        k: sorted(v) for k, v in PAPER_SPLIT.items()
-    }:
-        table, rows, name = PAPER_TABLE1, TABLE1_ROWS, "Table 1"
-    elif simulator == "robosuite":
-        from dataset_builders.robosuite import DEFAULT_DEMO_TASKS, DEFAULT_UNSEEN_TASKS, DEFAULT_VIDEO_TASKS
+    from dataset_builders.robosuite import DEFAULT_DEMO_TASKS, DEFAULT_UNSEEN_TASKS, DEFAULT_VIDEO_TASKS
 
-        default = {"demo": DEFAULT_DEMO_TASKS, "video": DEFAULT_VIDEO_TASKS, "unseen": DEFAULT_UNSEEN_TASKS}
-        if {k: sorted(v) for k, v in split.items()} != {k: sorted(v) for k, v in default.items()}:
-            return None
-        table, rows, name = PAPER_TABLE3, TABLE3_ROWS, "Table 3 (its own T_demo/T_vid tasks)"
-    else:
-        return None
-    return {method: dict(zip(rows, values, strict=True)) for method, values in table.items()}, name
+    def same(a: dict, b: dict) -> bool:
+        return {k: sorted(v) for k, v in a.items()} == {k: sorted(v) for k, v in b.items()}
+
+    if simulator == "metaworld" and same(split, PAPER_SPLIT):
+        return PAPER_TABLE1_ALL, "Table 1"
+    default = {"demo": DEFAULT_DEMO_TASKS, "video": DEFAULT_VIDEO_TASKS, "unseen": DEFAULT_UNSEEN_TASKS}
+    if simulator == "robosuite" and same(split, default):
+        table = {m: dict(zip(TABLE3_ROWS, v, strict=True)) for m, v in PAPER_TABLE3.items()}
+        return table, "Table 3 (its own T_demo/T_vid tasks)"
+    return None
 
 
 def load_run(folder: str) -> dict:

@@ -102,9 +102,13 @@ def predict_bins(policy, pre, dataset, indices: list[int], batch_size: int, desc
 
 
 def to_bins(actions: np.ndarray, config) -> np.ndarray:
-    """Continuous actions -> bin indices, as the preprocessor's ``jept_action_bins`` computes them."""
-    lo, hi, n = config.action_low, config.action_high, config.num_action_bins
-    return np.round((np.clip(actions, lo, hi) - lo) / (hi - lo) * (n - 1)).astype(np.int64)
+    """Continuous actions -> bin indices, through the preprocessor's own ``jept_action_bins`` step."""
+    from lerobot.processor import TransitionKey
+
+    from lerobot_jept.processor_jept import JeptActionBinsStep
+
+    step = JeptActionBinsStep(config.num_action_bins, config.action_low, config.action_high)
+    return step({TransitionKey.ACTION: torch.from_numpy(actions)})[TransitionKey.ACTION].numpy()
 
 
 def heldout_frames(
