@@ -79,6 +79,7 @@ def tiny_build() -> str:
         unseen_tasks=[],
         episodes_per_task=4,
         prompts_per_task=2,
+        probe_episodes_per_task=0,
         image_size=96,
         num_workers=1,
     )

@@ -6,6 +6,8 @@ A build turns expert rollouts into four LeRobotDataset v3 repos under ``$HF_LERO
   ``observation.action_labelled`` = 1;
 - ``<repo_id>_video``: T_vid episodes with the same observation features and NO ``action`` feature;
 - ``<repo_id>_prompts``: the prompt-video bank, ``prompts_per_task`` observation-only episodes of every task;
+- ``<repo_id>_probe``: ``probe_episodes_per_task`` held-out labelled episodes (with ``action``) of every task of
+  every split, for offline measures of a checkpoint (``jept-prompt-probe``); never used for training;
 - ``<repo_id>_mix``: demo + video episodes in the one repo ``lerobot-train`` needs; video frames have
   ``observation.action_labelled`` = 0 and the neutral action 0, and ``meta/stats.json`` action stats come from
   labelled frames only (``lerobot_jept.mixing``: a representation LeRobot's dataset tools keep whole).
@@ -45,14 +47,18 @@ from pathlib import Path
 from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.mixing import MIX_FORMAT
 
-ROLES = ("demo", "video", "prompts")
+ROLES = ("demo", "video", "prompts", "probe")
+LABELLED_ROLES = ("demo", "probe")  # recorded with the executed action
 ROLLOUTS_AHEAD = 2  # episodes the rollout process may run ahead of the writing
 SPLITS = ("demo", "video", "unseen")
 BUILD_FILE = "jept_build.json"  # written in <work dir>/ and in every repo's meta/
 # Episode seeds: each (role, shard) owns a disjoint block of SEED_BLOCK seeds, so training episodes and
-# prompt videos never share a seed, and both stay clear of lerobot-eval's default seeds (1000 + episode).
+# prompt videos and probe episodes never share a seed, and all stay clear of lerobot-eval's default seeds (1000 + episode).
 SEED_BLOCK = 10_000
-ROLE_SEED_BASE = {"demo": 10_000_000, "video": 10_000_000, "prompts": 20_000_000}
+ROLE_SEED_BASE = {"demo": 10_000_000, "video": 10_000_000, "prompts": 20_000_000, "probe": 30_000_000}
+# Flags added after builds were made: a build recorded without one takes the value given now (its shards are
+# recorded on top of the existing ones), so an older build resumes with today's defaults.
+ADDED_FLAGS = ("probe_episodes_per_task",)
 # Flags that change what is written; a repo built with other values is never mixed with new episodes.
 CONTENT_FLAGS = (
     "demo_tasks",
@@ -60,6 +66,7 @@ CONTENT_FLAGS = (
     "unseen_tasks",
     "episodes_per_task",
     "prompts_per_task",
+    "probe_episodes_per_task",
     "image_size",
     "seed",
     "action_bins",
@@ -87,6 +94,8 @@ class BuildConfig:
         unseen_tasks: T_unseen, tasks that only get prompt videos.
         episodes_per_task: successful expert episodes per demo/video task.
         prompts_per_task: prompt videos per task (all three splits), seeds disjoint from training episodes.
+        probe_episodes_per_task: held-out labelled episodes per task (all three splits) in ``<repo_id>_probe``,
+            seeds disjoint from every other role; 0 for none.
         image_size: side of the square camera image.
         seed: base seed; the same flags and seed give the same episodes.
         num_workers: parallel rollout processes (one simulator env per process).
@@ -108,6 +117,7 @@ class BuildConfig:
     unseen_tasks: list[str] = field(default_factory=list)
     episodes_per_task: int = 500
     prompts_per_task: int = 10
+    probe_episodes_per_task: int = 4
     image_size: int = 224
     seed: int = 0
     num_workers: int = 1
@@ -201,6 +211,8 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
     for name in ("episodes_per_task", "prompts_per_task", "image_size", "num_workers", "episodes_per_shard"):
         if getattr(cfg, name) < 1:
             raise BuildError(f"--{name} must be at least 1, got {getattr(cfg, name)}.")
+    if cfg.probe_episodes_per_task < 0:
+        raise BuildError(f"--probe_episodes_per_task must be 0 or more, got {cfg.probe_episodes_per_task}.")
     if cfg.action_bins < 2:
         raise BuildError(f"--action_bins must be at least 2, got {cfg.action_bins}.")
     if cfg.action_repeat < 1 or cfg.max_episode_steps < 1:
@@ -225,6 +237,7 @@ def plan_shards(cfg: BuildConfig) -> list[Shard]:
     ]
     all_tasks = [*cfg.demo_tasks, *cfg.video_tasks, *cfg.unseen_tasks]
     jobs.append(("prompts", all_tasks, cfg.prompts_per_task))
+    jobs.append(("probe", all_tasks, cfg.probe_episodes_per_task))
     shards = []
     for role, tasks, per_task in jobs:
         for task in tasks:
@@ -308,7 +321,7 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
     final = paths.shard(shard)
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    with_actions = shard.role == "demo"
+    with_actions = shard.role in LABELLED_ROLES
     features = dict(sim.observation_features(cfg))
     if with_actions:
         features["action"] = sim.action_feature()
@@ -628,7 +641,8 @@ def _check_existing(paths: BuildPaths, cfg: BuildConfig, sim: Simulator) -> dict
         return None
     record = json.loads(record_path.read_text())
     wanted = {"simulator": sim.name, **cfg.content_flags()}
-    previous = {"simulator": record.get("simulator"), **record.get("flags", {})}
+    added = {name: wanted[name] for name in ADDED_FLAGS}
+    previous = {"simulator": record.get("simulator"), **added, **record.get("flags", {})}
     changed = [f"--{k}={previous.get(k)!r} (now {v!r})" for k, v in wanted.items() if previous.get(k) != v]
     if changed:
         raise BuildError(
@@ -681,7 +695,7 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
         _aggregate(
             [(paths.shard_repo_id(s), paths.shard(s)) for s in role_shards], paths.repo_id_of(role), tmp
         )
-        if role == "demo":  # every frame labelled, as in the mix, so that LeRobot can merge the two
+        if role in LABELLED_ROLES:  # every frame labelled, as in the mix, so that LeRobot can merge them
             tmp = _with_labels(tmp, paths.repo_id_of(role))
         _replace_dir(tmp, paths.repo(role))
         assembled[role] = names
@@ -764,6 +778,11 @@ ROLE_DESCRIPTIONS = {
         "design: JEPT learns these tasks from video alone"
     ),
     "prompts": "the prompt-video bank: observation-only episodes of every task, looked up by task string",
+    "probe": (
+        "held-out labelled episodes (camera, self-state and the executed action) of every task of every split, "
+        "with seeds disjoint from all other repos: never trained on, they measure a checkpoint offline "
+        "(`jept-prompt-probe`, `jept-eval-suite`)"
+    ),
     "mix": (
         "the single training repo for `lerobot-train`: demo and video episodes together; video frames have "
         "`observation.action_labelled` = 0 and a neutral action of 0 (stats come from labelled frames only)"

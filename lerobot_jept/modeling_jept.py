@@ -155,20 +155,11 @@ class JEPTPolicy(DiscreteActionPolicy):
         cfg, m = self.config, self.model
         if self.training:
             self._apply_phase()
-        state = batch[OBS_STATE]  # (B, k+1, S)
         k = cfg.n_obs_steps
         tokens, obs, h_in = self._encode_window(batch)
-        with torch.no_grad():
-            target_obs = m.tokenize(m.target_encoder.tokenizer, tokens.detach(), state)
-            targets = m.target_encoder.temporal.context_embeddings(target_obs, first=1)
         prompt = self.prompt(batch) if self.prompt_active else None
         pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
-
-        # L_obs (eq. 7): L2 distance per token, averaged over tokens and over the frames whose target is real.
-        dist = torch.linalg.vector_norm(pred_h - targets, dim=-1).mean(-1)  # (B, k)
-        pad = batch.get(f"{cfg.image_key}_is_pad")
-        frame_ok = torch.ones_like(dist) if pad is None else (~pad[:, 1:]).float()
-        loss_obs = frame_mean(dist, frame_ok)
+        loss_obs, dist, frame_ok, targets = self._obs_loss(batch, tokens, pred_h)
 
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
         loss_act, labelled = self.action_loss(logits, batch)
@@ -220,17 +211,34 @@ class JEPTPolicy(DiscreteActionPolicy):
             info["prompt_swap_gap"] = gap.mean().item()
         return extra, info
 
+    def _obs_loss(self, batch: dict[str, Tensor], tokens: Tensor, pred_h: Tensor) -> tuple[Tensor, ...]:
+        """L_obs (eq. 7): the L2 distance per token between predicted and EMA-target joint embeddings, averaged
+        over tokens and over the frames whose target is real -> per sample (B,), with the per-frame distances
+        (B, k), the real-frame mask (B, k) and the targets."""
+        m = self.model
+        with torch.no_grad():
+            target_obs = m.tokenize(m.target_encoder.tokenizer, tokens.detach(), batch[OBS_STATE])
+            targets = m.target_encoder.temporal.context_embeddings(target_obs, first=1)
+        dist = torch.linalg.vector_norm(pred_h - targets, dim=-1).mean(-1)
+        pad = batch.get(f"{self.config.image_key}_is_pad")
+        frame_ok = torch.ones_like(dist) if pad is None else (~pad[:, 1:]).float()
+        return frame_mean(dist, frame_ok), dist, frame_ok, targets
+
     @torch.no_grad()
-    def offline_action_logits(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Logits (B, A, bins) of a_t for the last context frame of a preprocessed training-shaped batch (k + 1
-        frames): ``control`` from the predicted h_{t+1}, as ``select_action`` chooses it; ``inverse`` from the
-        real next frame's joint embedding (the inverse dynamics alone)."""
+    def offline_outputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """On a preprocessed training-shaped batch (k + 1 frames): logits (B, A, bins) of a_t for the last
+        context frame, ``control`` from the predicted h_{t+1} (what ``select_action`` chooses) and ``inverse``
+        from the real next frame's joint embedding (the inverse dynamics alone); and ``loss_obs`` (B,)."""
         m, k = self.model, self.config.n_obs_steps
-        _, obs, h_in = self._encode_window(batch)
+        tokens, obs, h_in = self._encode_window(batch)
         prompt = self.prompt(batch) if self.prompt_active else None
-        _, logits = m.predict(prompt, obs[:, :k], h_in)
+        pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
         z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
-        return {"control": m.action_head(z_next[:, None])[:, 0], "inverse": logits[:, -1]}
+        return {
+            "control": m.action_head(z_next[:, None])[:, 0],
+            "inverse": logits[:, -1],
+            "loss_obs": self._obs_loss(batch, tokens, pred_h)[0],
+        }
 
     def _encode_window(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
         """A training-shaped window (k + 1 frames) -> backbone tokens, observation tokens and the predictor's

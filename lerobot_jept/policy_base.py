@@ -332,6 +332,13 @@ class ContextActionPolicy(DiscreteActionPolicy):
         return self.prompt(batch), obs.new_zeros(obs.shape[0]), {}
 
     @torch.no_grad()
+    def offline_outputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """``control``: logits (B, A, bins) of a_t for the last frame of a preprocessed training-shaped batch,
+        as ``select_action`` chooses it."""
+        obs = self.model.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        return {"control": self.model.action_logits(self.prompt(batch), obs)[:, -1]}
+
+    @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """(B, action_dim) bin-centre actions for the current observation."""
         prompt = self.episode_prompt(batch)

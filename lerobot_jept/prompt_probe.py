@@ -1,7 +1,8 @@
-"""``jept-prompt-probe``: does a checkpoint's policy follow its prompt video? Offline, on a labelled repo.
+"""``jept-prompt-probe``: a checkpoint measured offline on held-out labelled episodes, per task and per split.
 
-Three measures, per task of a labelled LeRobotDataset that was not trained on (e.g. a build of every task of
-the split as demo tasks, with another ``--seed``):
+Works for every policy type that takes a prompt (``jept``, ``dt_star``, ``vid2robot``), on a labelled
+LeRobotDataset that was not trained on: the builder's ``ORG/NAME_probe`` repo (every task of every split, seeds
+disjoint from everything else), or any labelled repo.
 
 - Prompt separability. Every episode of the repo is a held-out prompt: its frames, subsampled to the policy's
   ``max_prompt_length``, go through the prompt encoder to E_prt (N_prt x D, flattened). Reported: leave-one-out
@@ -10,17 +11,19 @@ the split as demo tasks, with another ``--seed``):
   standard deviation across prompts, divided by the mean absolute value; a prompt embedding collapsed to a
   constant has spread ~0).
 - Action accuracy. On up to ``frames_per_episode`` frames of every episode, the action-bin accuracy (whole
-  action and per dimension) of a_t for the last context frame, prompted by the task's first bank prompt (what
-  ``select_action`` does): ``control`` predicts h_{t+1} and reads the action from it (the policy);
-  ``inverse`` reads it from the real next frame's joint embedding (the inverse dynamics alone).
+  action and per dimension) of a_t for the last context frame, prompted by the task's first bank prompt:
+  ``control`` is the action ``select_action`` would choose (for JEPT: from the predicted h_{t+1});
+  ``inverse`` (JEPT only) reads it from the real next frame's joint embedding (the inverse dynamics alone).
+  JEPT also reports L_obs, the distance of its predicted next joint embeddings to the EMA targets.
 - Prompt swap. The same frames prompted by a scene-mate's bank prompt (tasks whose names share their first
   word, e.g. window-open / window-close; every other task for a repo without the builder's metadata): the
   fraction of frames whose chosen action changes.
+- Per split (T_demo / T_vid / T_unseen, from the build's metadata): the mean over tasks of each measure.
 
-    jept-prompt-probe --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_demo \\
+    jept-prompt-probe --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_probe \\
         [--prompt_repo_id=ORG/NAME_prompts] [--output_dir=outputs/probe]
 
-Writes ``prompt_probe.json`` and ``prompt_probe.md``; ``jept-eval-suite --probe_repo_id=...`` runs it too.
+Writes ``prompt_probe.json`` and ``prompt_probe.md``; ``jept-eval-suite`` runs it on the build's probe repo.
 """
 
 import json
@@ -106,16 +109,19 @@ def scene_mates(task_strings: list[str], names: dict[str, str] | None) -> dict[s
 
 def load_checkpoint(cfg: ProbeConfig):
     from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import make_pre_post_processors
-
-    from lerobot_jept.modeling_jept import JEPTPolicy
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     policy_cfg = PreTrainedConfig.from_pretrained(cfg.policy.path)
+    if policy_cfg.type == "idm":
+        raise ProbeError(
+            f"{cfg.policy.path} is an inverse dynamics model: it takes no prompt and cannot act. Probe the policy "
+            "trained on its labels (jept-relabel, then --policy.type=dt_star) instead."
+        )
     if cfg.policy.device:
         policy_cfg.device = cfg.policy.device
     if cfg.prompt_repo_id:
         policy_cfg.prompt_repo_id, policy_cfg.prompt_root = cfg.prompt_repo_id, cfg.prompt_root
-    policy = JEPTPolicy.from_pretrained(cfg.policy.path, config=policy_cfg).eval()
+    policy = get_policy_class(policy_cfg.type).from_pretrained(cfg.policy.path, config=policy_cfg).eval()
     overrides = {"jept_prompt_video": {"repo_id": policy_cfg.prompt_repo_id, "root": policy_cfg.prompt_root}}
     pre, _ = make_pre_post_processors(
         policy_cfg, pretrained_path=cfg.policy.path, preprocessor_overrides=overrides
@@ -150,9 +156,20 @@ def probe_frames(dataset, per_episode: int) -> list[int]:
     return frames
 
 
+def bin_accuracy(predicted: torch.Tensor, labels: torch.Tensor) -> tuple[float, float]:
+    """Whole-action and per-dimension accuracy of predicted bins (N, A) against labels (N, A), over the
+    labelled rows (every label >= 0); NaN without any."""
+    labelled = (labels >= 0).all(-1)
+    hit = (predicted == labels)[labelled]
+    if not len(hit):
+        return float("nan"), float("nan")
+    return float(hit.all(-1).float().mean()), float(hit.float().mean())
+
+
 @torch.no_grad()
 def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: ProbeConfig) -> dict:
-    """Per task: control / inverse action accuracy with its own bank prompt, and the swap change rate."""
+    """Per task: control (/ inverse) action accuracy and L_obs with its own bank prompt, and the swap change
+    rate."""
     from lerobot.utils.constants import ACTION
 
     from lerobot_jept.modeling_jept import PROMPT_MASK, PROMPT_VIDEO
@@ -167,10 +184,15 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
     results = {}
     for task_index, indices in tqdm(sorted(by_task.items()), desc="action probe", unit="task"):
         task = task_strings[task_index]
+        if task not in bank.tasks:
+            raise ProbeError(
+                f"The prompt bank {bank.repo_id} has no prompt of {task!r}: pass --prompt_repo_id=ORG/NAME_prompts "
+                "of the build that recorded the probe repo."
+            )
         mates = [m for m in all_mates[task] if m in bank.tasks]
         prompts = {task: bank.batch([bank.episodes(task)[0]])}
         prompts.update({m: bank.batch([bank.episodes(m)[0]]) for m in mates})
-        stats = {"control": [], "inverse": [], "labels": []}
+        outs: dict[str, list[torch.Tensor]] = {"labels": []}
         swaps = {m: [] for m in mates}
         for start in range(0, len(indices), cfg.batch_size):
             items = [dataset[i] for i in indices[start : start + cfg.batch_size]]
@@ -180,29 +202,54 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
             batch["task"] = [it["task"] for it in items]
             outputs = {}
             for name, (video, mask) in prompts.items():
-                given = {**batch, PROMPT_VIDEO: video.expand(len(items), -1, -1, -1, -1), PROMPT_MASK: mask}
+                given = {**batch, PROMPT_VIDEO: video.expand(len(items), -1, -1, -1, -1)}
                 given[PROMPT_MASK] = mask.expand(len(items), -1)
                 processed = pre(given)
-                outputs[name] = policy.offline_action_logits(processed)
-            stats["labels"].append(processed[ACTION][:, -1].cpu())
-            for path in ("control", "inverse"):
-                stats[path].append(outputs[task][path].argmax(-1).cpu())
+                outputs[name] = policy.offline_outputs(processed)
+            outs["labels"].append(processed[ACTION][:, -1].cpu())
+            for key, value in outputs[task].items():
+                outs.setdefault(key, []).append((value.argmax(-1) if value.ndim == 3 else value).cpu())
             for m in mates:
                 changed = (outputs[m]["control"].argmax(-1) != outputs[task]["control"].argmax(-1)).any(-1)
                 swaps[m].append(changed.cpu())
-        labels = torch.cat(stats["labels"])
-        labelled = (labels >= 0).all(-1)
-        row = {"task": names.get(task, task), "frames": int(labelled.sum())}
+        labels = torch.cat(outs["labels"])
+        row = {"task": names.get(task, task), "frames": int((labels >= 0).all(-1).sum())}
         for path in ("control", "inverse"):
-            hit = (torch.cat(stats[path]) == labels)[labelled]
-            row[f"{path}_whole"] = float(hit.all(-1).float().mean()) if len(hit) else float("nan")
-            row[f"{path}_per_dim"] = float(hit.float().mean()) if len(hit) else float("nan")
+            if path in outs:
+                row[f"{path}_whole"], row[f"{path}_per_dim"] = bin_accuracy(torch.cat(outs[path]), labels)
+        if "loss_obs" in outs:
+            row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
         row["swap_changed"] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in swaps.items()}
         results[task] = row
     return results
 
 
-def run_probe(cfg: ProbeConfig) -> dict:
+SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
+MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs", "nc_accuracy")
+
+
+def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float], split: dict) -> dict:
+    """Mean over each split's tasks (T_demo / T_vid / T_unseen) of every measure the rows carry, plus the
+    E_prt nearest-centroid accuracy; splits without a probed task are left out."""
+    out = {}
+    for key, tasks in split.items():
+        present = [t for t in tasks if t in rows]
+        if not present:
+            continue
+        summary = {"tasks": present}
+        for measure in MEASURES:
+            if measure == "nc_accuracy":
+                values = [separability_per_task[t] for t in present if t in separability_per_task]
+            else:
+                values = [rows[t][measure] for t in present if measure in rows[t]]
+            if values:
+                summary[measure] = float(np.mean(values))
+        out[SPLIT_NAMES[key]] = summary
+    return out
+
+
+def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> dict:
+    """The probe; ``split`` (builder task names per split) defaults to the probe repo's own build metadata."""
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
@@ -223,15 +270,19 @@ def run_probe(cfg: ProbeConfig) -> dict:
         delta_timestamps=resolve_delta_timestamps(policy.config, meta),
     )
     names = task_names(meta)
+    if split is None and names is not None:
+        split = json.loads((Path(meta.root) / "meta/jept_build.json").read_text())["split"]
     embeddings, prompt_tasks = prompt_embeddings(policy, dataset)
     sep = separability(embeddings, [(names or {}).get(t, t) for t in prompt_tasks])
-    actions = action_measures(policy, pre, dataset, names, cfg)
+    actions = {row["task"]: row for row in action_measures(policy, pre, dataset, names, cfg).values()}
     results = {
         "policy": cfg.policy.path,
+        "policy_type": policy.config.type,
         "dataset": cfg.dataset.repo_id,
         "prompt_bank": policy.config.prompt_repo_id,
         "prompt_separability": sep,
-        "actions": {row["task"]: row for row in actions.values()},
+        "actions": actions,
+        "splits": split_summary(actions, sep["per_task_accuracy"], split) if split else {},
     }
     if cfg.output_dir is not None:
         out = Path(cfg.output_dir)
@@ -241,6 +292,10 @@ def run_probe(cfg: ProbeConfig) -> dict:
     return results
 
 
+def _cell(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None or value != value else f"{value:.{digits}f}"
+
+
 def markdown(results: dict) -> str:
     sep = results["prompt_separability"]
     lines = [
@@ -248,16 +303,24 @@ def markdown(results: dict) -> str:
         f"{sep['nearest_centroid_accuracy']:.3f}, spread {sep['spread']:.3f}",
         "",
         "| Task | E_prt NC acc | frames | control whole | control per-dim | inverse whole | inverse per-dim "
-        "| prompt swap changes action |",
-        "|---|---:|---:|---:|---:|---:|---:|---|",
+        "| L_obs | prompt swap changes action |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for task, row in results["actions"].items():
         swap = ", ".join(f"{m}: {v:.2f}" for m, v in row["swap_changed"].items()) or "-"
-        lines.append(
-            f"| {task} | {sep['per_task_accuracy'].get(task, float('nan')):.2f} | {row['frames']} | "
-            f"{row['control_whole']:.3f} | {row['control_per_dim']:.3f} | {row['inverse_whole']:.3f} | "
-            f"{row['inverse_per_dim']:.3f} | {swap} |"
-        )
+        cells = [_cell(sep["per_task_accuracy"].get(task), 2), str(row["frames"])]
+        cells += [_cell(row.get(k)) for k in MEASURES[:5]]
+        lines.append(f"| {task} | " + " | ".join(cells) + f" | {swap} |")
+    if results.get("splits"):
+        lines += [
+            "",
+            "| Split | tasks | E_prt NC acc | control whole | control per-dim | inverse whole | inverse per-dim "
+            "| L_obs |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for name, row in results["splits"].items():
+            cells = [_cell(row.get("nc_accuracy"), 2)] + [_cell(row.get(k)) for k in MEASURES[:5]]
+            lines.append(f"| {name} | {len(row['tasks'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -5,8 +5,9 @@ Every demo, video and unseen task recorded in the mix repo's split metadata (``m
 evaluated with ``--env.type=jept_metaworld`` or ``jept_robosuite`` under the build's protocol (image size, action repeat, truncation)
 and prompt bank. Writes ``results.json``, ``results.md`` (Table 1's rows: T_demo average, T_vid average, each
 unseen task, seen average, unseen average) and ``results.png``, plus LeRobot's eval_info.json and videos per
-task under ``tasks/<task>/``. With ``--probe_repo_id`` (held-out labelled episodes), the results also carry
-``jept-prompt-probe``'s measures of whether the policy follows its prompt.
+task under ``tasks/<task>/``. The results also carry ``jept-prompt-probe``'s offline measures on held-out labelled
+episodes (action-bin accuracy per task and per split, L_obs for JEPT, prompt separability and swap): on the
+build's ``ORG/NAME_probe`` repo, or on ``--probe_repo_id``; ``--probe=false`` skips them.
 
     jept-eval-suite --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_mix \\
         --n_episodes=50 --output_dir=outputs/suite
@@ -69,11 +70,13 @@ class SuiteConfig:
     batch_size: int = 10  # parallel envs per task
     use_async_envs: bool = False
     seed: int = 1000
+    episode_length: int | None = None  # default: the build's max_episode_steps (shorter: a quick check)
     output_dir: Path = Path("outputs/suite")
     prompt_repo_id: str | None = None  # default: the build's prompt bank
     prompt_root: str | None = None
-    # A labelled repo of held-out episodes: when given, jept-prompt-probe runs on it too and its results
-    # (E_prt separability, action accuracy, prompt swap) join results.json / results.md.
+    # Offline measures (jept-prompt-probe) on a labelled repo of held-out episodes, joined to results.json /
+    # results.md: the build's ORG/NAME_probe by default, or this repo.
+    probe: bool = True
     probe_repo_id: str | None = None
     probe_root: str | None = None
 
@@ -168,7 +171,7 @@ def evaluate_task(cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str,
     common = dict(
         task=task,
         image_size=protocol["image_size"],
-        episode_length=protocol["max_episode_steps"],
+        episode_length=cfg.episode_length or protocol["max_episode_steps"],
         prompt_repo_id=prompt_repo_id,
         prompt_root=cfg.prompt_root,
         prompt_max_frames=getattr(policy, "max_prompt_length", 250),
@@ -202,11 +205,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
     from lerobot.configs.policies import PreTrainedConfig
 
     policy_type = PreTrainedConfig.from_pretrained(cfg.policy.path).type
-    if cfg.probe_repo_id and policy_type != "jept":
-        raise SuiteError(
-            f"--probe_repo_id measures JEPT's prompt embedding and predicted next embedding; {cfg.policy.path} is a "
-            f"{policy_type!r} policy. Drop --probe_repo_id for it."
-        )
+    probe_repo_id = (cfg.probe_repo_id or build["repos"].get("probe")) if cfg.probe else None
     prompt_repo_id = cfg.prompt_repo_id or build["repos"].get("prompts")
     if not prompt_repo_id:
         raise SuiteError(
@@ -245,19 +244,22 @@ def run_suite(cfg: SuiteConfig) -> dict:
         "paper_table": PAPER_TABLE1 if paper else None,
     }
     table = markdown(rows, per_task, paper, policy_type)
-    if cfg.probe_repo_id:
+    if probe_repo_id:
         from lerobot_jept.prompt_probe import ProbeConfig, run_probe
         from lerobot_jept.prompt_probe import markdown as probe_markdown
 
         probe = run_probe(
             ProbeConfig(
                 PolicyArg(cfg.policy.path, cfg.policy.device),
-                DatasetArg(cfg.probe_repo_id, cfg.probe_root),
+                DatasetArg(probe_repo_id, cfg.probe_root),
+                prompt_repo_id=prompt_repo_id,
+                prompt_root=cfg.prompt_root,
                 output_dir=out,
-            )
+            ),
+            split=split,
         )
         results["prompt_probe"] = probe
-        table += f"\n## Prompt probe on {cfg.probe_repo_id}\n\n" + probe_markdown(probe)
+        table += f"\n## Offline probe on {probe_repo_id}\n\n" + probe_markdown(probe)
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table)
     bar_chart(rows, out / "results.png", paper, TITLES[simulator])

@@ -28,6 +28,7 @@ BUILD = [
     "--unseen_tasks=[handle-press-v3]",
     "--episodes_per_task=10",
     "--prompts_per_task=3",
+    "--probe_episodes_per_task=2",
     "--image_size=96",
     "--episodes_per_shard=5",
     "--num_workers=2",

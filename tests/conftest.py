@@ -23,6 +23,7 @@ TINY = dict(
     unseen_tasks=["handle-press-v3"],
     episodes_per_task=3,
     prompts_per_task=2,
+    probe_episodes_per_task=1,
     image_size=64,
     episodes_per_shard=2,
 )
@@ -36,7 +37,7 @@ def load(repo_id: str, **kwargs):
 
 @pytest.fixture(scope="session")
 def tiny_build():
-    """A real tiny Meta-World build, ``test/mw_tiny_{demo,video,prompts,mix}``, shared by all tests."""
+    """A real tiny Meta-World build, ``test/mw_tiny_{demo,video,prompts,probe,mix}``, shared by all tests."""
     cfg = MetaworldBuildConfig(repo_id="test/mw_tiny", **TINY)
     summary = build(cfg, SIM)
     return cfg, summary

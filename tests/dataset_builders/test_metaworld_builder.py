@@ -31,7 +31,7 @@ def lerobot_home() -> Path:
 
 def test_repo_schemas(tiny_build):
     cfg, _ = tiny_build
-    expected_episodes = {"demo": 6, "video": 3, "prompts": 8, "mix": 9}
+    expected_episodes = {"demo": 6, "video": 3, "prompts": 8, "probe": 4, "mix": 9}
     for role, n in expected_episodes.items():
         ds = load(f"test/mw_tiny_{role}")
         assert ds.meta.total_episodes == n
@@ -39,11 +39,11 @@ def test_repo_schemas(tiny_build):
         assert ds.features["observation.image"]["dtype"] == "video"
         assert tuple(ds.features["observation.image"]["shape"]) == (64, 64, 3)
         assert tuple(ds.features["observation.state"]["shape"]) == (STATE_DIM,)
-        assert ("action" in ds.features) == (role in ("demo", "mix"))
+        assert ("action" in ds.features) == (role in ("demo", "probe", "mix"))
         item = ds[0]
         assert item["observation.image"].shape == (3, 64, 64)
         assert item["observation.state"].dtype.is_floating_point
-        if role in ("demo", "mix"):
+        if role in ("demo", "probe", "mix"):
             assert tuple(ds.features["action"]["shape"]) == (4,)
 
 
@@ -83,13 +83,14 @@ def test_mix_marks_video_frames_unlabelled_and_stats_use_labelled_frames_only(ti
 
 def test_task_strings_and_split_metadata(tiny_build):
     cfg, _ = tiny_build
-    for role in ("demo", "video", "prompts", "mix"):
+    for role in ("demo", "video", "prompts", "probe", "mix"):
         meta = json.loads((lerobot_home() / f"test/mw_tiny_{role}/meta" / BUILD_FILE).read_text())
         assert meta["split"] == {"demo": cfg.demo_tasks, "video": cfg.video_tasks, "unseen": cfg.unseen_tasks}
         assert meta["protocol"]["action_repeat"] == 2 and meta["protocol"]["max_episode_steps"] == 250
-    prompts = load("test/mw_tiny_prompts")
+        assert meta["repos"]["probe"] == "test/mw_tiny_probe"
     all_tasks = [*cfg.demo_tasks, *cfg.video_tasks, *cfg.unseen_tasks]
-    assert set(prompts.meta.tasks.index) == {task_description(t) for t in all_tasks}
+    for role in ("prompts", "probe"):  # every task of every split
+        assert set(load(f"test/mw_tiny_{role}").meta.tasks.index) == {task_description(t) for t in all_tasks}
     for task in all_tasks:
         assert JeptMetaworldEnv(task).task_description == task_description(task)
     assert set(load("test/mw_tiny_mix").meta.tasks.index) == {
@@ -101,9 +102,11 @@ def test_prompt_seeds_are_disjoint_from_training_seeds(tiny_build):
     shards = lerobot_home() / "test/mw_tiny.build/shards"
     seeds = {
         role: {s for p in (shards / role).glob("*/*/shard.json") for s in json.loads(p.read_text())["seeds"]}
-        for role in ("demo", "video", "prompts")
+        for role in ("demo", "video", "prompts", "probe")
     }
     assert seeds["prompts"].isdisjoint(seeds["demo"] | seeds["video"])
+    assert seeds["probe"].isdisjoint(seeds["demo"] | seeds["video"] | seeds["prompts"])
+    assert len(list((shards / "probe").glob("*/*/shard.json"))) == 4  # one episode of each task
 
 
 def test_first_frame_matches_env_reset_upright_and_not_blank(tiny_build):
@@ -139,6 +142,7 @@ def test_same_flags_give_same_episodes_with_any_worker_count(tmp_path):
         unseen_tasks=[],
         episodes_per_task=3,
         prompts_per_task=1,
+        probe_episodes_per_task=0,
         image_size=48,
         episodes_per_shard=1,
         seed=7,
@@ -177,12 +181,25 @@ def test_existing_repo_with_different_flags_is_refused(tiny_build, capsys):
                 "--episodes_per_task=4",
                 "--image_size=64",
                 "--prompts_per_task=2",
+                "--probe_episodes_per_task=1",
                 "--episodes_per_shard=2",
                 "--demo_tasks=[button-press-v3, reach-v3]",
                 "--video_tasks=[drawer-close-v3]",
                 "--unseen_tasks=[handle-press-v3]",
             ]
         )
+
+
+def test_build_recorded_before_the_probe_flag_resumes(tiny_build):
+    """A build recorded by a version without --probe_episodes_per_task takes today's value instead of being
+    refused for a changed flag."""
+    cfg, _ = tiny_build
+    record_path = lerobot_home() / "test/mw_tiny.build" / BUILD_FILE
+    record = json.loads(record_path.read_text())
+    del record["flags"]["probe_episodes_per_task"]
+    record_path.write_text(json.dumps(record))
+    build(cfg, SIM)
+    assert json.loads(record_path.read_text())["flags"]["probe_episodes_per_task"] == 1
 
 
 def test_foreign_repo_is_not_overwritten(tmp_path):
@@ -231,6 +248,7 @@ def test_killed_build_resumes_without_loss_or_duplicates(tmp_path):
         "--unseen_tasks=[]",
         "--episodes_per_task=4",
         "--prompts_per_task=1",
+        "--probe_episodes_per_task=0",
         "--image_size=48",
         "--episodes_per_shard=1",
     ]

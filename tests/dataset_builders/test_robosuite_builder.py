@@ -22,6 +22,7 @@ RS_TINY = dict(
     unseen_tasks=["ur5e-lift"],
     episodes_per_task=2,
     prompts_per_task=1,
+    probe_episodes_per_task=0,
     image_size=64,
     episodes_per_shard=2,
 )

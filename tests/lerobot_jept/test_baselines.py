@@ -308,6 +308,9 @@ def test_baseline_trains_and_evaluates_with_lerobot(tiny_build, tmp_path, policy
     results = json.loads((tmp_path / "suite/results.json").read_text())
     assert results["policy_type"] == policy_type
     assert all(len(r["successes"]) == 2 for r in results["per_task"].values())
+    probe = results["prompt_probe"]  # the baselines' offline measures: control only (no inverse, no L_obs)
+    assert probe["policy_type"] == policy_type and set(probe["splits"]) == {"T_demo", "T_vid", "T_unseen"}
+    assert all("control_whole" in r and "inverse_whole" not in r for r in probe["actions"].values())
 
 
 @pytest.mark.slow

@@ -143,16 +143,21 @@ def test_eval_suite_writes_table_and_chart(trained):
             "--n_episodes=1",
             "--batch_size=1",
             f"--output_dir={suite}",
-            "--probe_repo_id=test/mw_tiny_demo",
         ],
         tmp,
     )
     results = json.loads((suite / "results.json").read_text())
-    probe = results["prompt_probe"]
-    assert probe["prompt_separability"]["num_prompts"] == 6  # every episode of the labelled repo
-    assert set(probe["actions"]) == {"button-press-v3", "reach-v3"}
-    assert all(0 <= row["control_whole"] <= row["control_per_dim"] <= 1 for row in probe["actions"].values())
+    probe = results["prompt_probe"]  # on the build's probe repo: one held-out episode of every task
+    assert probe["dataset"] == "test/mw_tiny_probe"
+    assert probe["prompt_separability"]["num_prompts"] == 4
+    assert set(probe["actions"]) == {"button-press-v3", "reach-v3", "drawer-close-v3", "handle-press-v3"}
+    for row in probe["actions"].values():
+        assert 0 <= row["control_whole"] <= row["control_per_dim"] <= 1
+        assert 0 <= row["inverse_whole"] <= row["inverse_per_dim"] <= 1 and row["loss_obs"] > 0
+    assert list(probe["splits"]) == ["T_demo", "T_vid", "T_unseen"]
+    assert probe["splits"]["T_vid"]["control_per_dim"] == probe["actions"]["drawer-close-v3"]["control_per_dim"]
     assert "Prompt embedding E_prt" in (suite / "results.md").read_text()
+    assert "| T_unseen | 1 |" in (suite / "results.md").read_text()
     assert (suite / "prompt_probe.json").is_file()
     assert set(results["per_task"]) == {"button-press-v3", "reach-v3", "drawer-close-v3", "handle-press-v3"}
     assert list(results["table"]) == ["T_demo", "T_vid", "handle-press-v3", "Seen average", "Unseen average"]

@@ -1,0 +1,692 @@
+"""``jept-study``: the paper's experiments as one resumable command.
+
+    jept-study --config=examples/studies/cpu_small.json [--output_dir=DIR] [--device=cpu|cuda]
+
+A study file (JSON, read with draccus into :class:`StudyConfig`; every field can also be given on the command
+line, e.g. ``--seeds='[1000]'``) names the simulator, one or more splits (several: the paper's Table 2), the
+build sizes, the methods, the training seeds and steps, and the evaluation episodes. The study runs the real
+entry points in order and prints each command before it runs it:
+
+1. per split, the builder (``jept-build-metaworld`` / ``jept-build-robosuite``): ``_demo``, ``_video``,
+   ``_prompts``, ``_probe`` and ``_mix`` repos under ``$HF_LEROBOT_HOME`` (shared with any other study or
+   command that builds the same flags);
+2. per split, the random 7-bin policy's success on every task (the floor), when ``random_episodes`` > 0;
+3. per split, method and seed: ``lerobot-train`` (for BC+IDM: ``lerobot-train`` of the ``idm``, ``jept-relabel``
+   of the mix, then ``lerobot-train`` of ``dt_star`` on the relabelled repo), then ``jept-eval-suite`` (LeRobot's
+   eval on every task, plus the offline probe on the build's ``_probe`` repo);
+4. per split, ``jept-compare`` over the methods and seeds;
+5. ``report.md`` with the tables (mean and 95% interval over seeds, the paper's numbers beside ours on the
+   paper's split, the random floor), the offline probe per split, and plots: grouped success bars, training
+   curves of loss_obs / loss_act per method, and (several splits) success against the number of video tasks.
+
+Resumable: every finished step leaves a marker (``<step>.done.json``) and is skipped on re-run; a training run
+killed after a checkpoint resumes from it (``lerobot-train --resume=true``), one killed before restarts clean.
+Each command's output goes to a log file next to its outputs (printed on failure).
+"""
+
+import json
+import logging
+import math
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+from tqdm import tqdm
+
+from lerobot_jept.compare import t_interval
+
+STUDY_SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
+PROBE_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
+# The paper's Table 2 (JEPT, success %) against the number of T_vid tasks in the mixture.
+PAPER_TABLE2 = {
+    0: {"T_demo": 59.5, "Unseen average": 1.5},
+    2: {"T_demo": 49.8, "Unseen average": 1.5},
+    4: {"T_demo": 47.0, "Unseen average": 12.5},
+    6: {"T_demo": 51.3, "Unseen average": 18.5},
+}
+
+
+@dataclass
+class SplitSpec:
+    """One build: its ORG/NAME and its task split (T_demo / T_vid / T_unseen)."""
+
+    name: str = "split"  # folder of its runs and label in the report
+    repo_id: str = "local/study"
+    demo_tasks: list[str] = field(default_factory=list)
+    video_tasks: list[str] = field(default_factory=list)
+    unseen_tasks: list[str] = field(default_factory=list)
+
+
+@dataclass
+class BuildSpec:
+    """Builder flags shared by every split of the study (``args``: any further builder flags)."""
+
+    episodes_per_task: int = 30
+    prompts_per_task: int = 4
+    probe_episodes_per_task: int = 4
+    image_size: int = 96
+    seed: int = 0
+    num_workers: int = 2
+    args: list[str] = field(default_factory=list)
+
+
+@dataclass
+class MethodSpec:
+    """One column of the tables. ``kind``: ``train`` (``lerobot-train`` with ``config`` on the split's ``data``
+    repo, ``mix`` or ``demo``) or ``bc_idm`` (an ``idm`` from ``idm_config`` on ``_demo``, ``jept-relabel`` of
+    ``_mix``, then ``config`` — a ``dt_star`` config — on the relabelled repo). ``args``: ``lerobot-train`` flags
+    of this method (a ``jept`` variant is ``jept`` with overrides)."""
+
+    name: str = "JEPT"
+    kind: str = "train"
+    config: str = "examples/configs/train_jept_small_cpu.json"
+    data: str = "mix"
+    args: list[str] = field(default_factory=list)
+    idm_config: str = "examples/configs/train_idm_small_cpu.json"
+    idm_args: list[str] = field(default_factory=list)
+
+
+@dataclass
+class StudyConfig:
+    name: str = "study"
+    simulator: str = "metaworld"  # metaworld | robosuite
+    splits: list[SplitSpec] = field(default_factory=list)
+    build: BuildSpec = field(default_factory=BuildSpec)
+    methods: list[MethodSpec] = field(default_factory=list)
+    seeds: list[int] = field(default_factory=lambda: [1000, 2000, 3000])
+    steps: int = 1000
+    save_freq: int = 500  # checkpoints a killed run resumes from
+    train_args: list[str] = field(default_factory=list)  # lerobot-train flags of every run
+    eval_episodes: int = 10  # per task
+    eval_batch_size: int = 10
+    eval_seed: int = 1000
+    eval_episode_length: int | None = None  # default: the build's max_episode_steps
+    random_episodes: int = 20  # per task, for the random 7-bin floor; 0 skips it
+    output_dir: Path | None = None  # default: outputs/study/<name>
+    device: str = "cpu"
+
+
+class StudyError(RuntimeError):
+    pass
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The plan: every step with its command (or function) and the marker that says it is done.
+
+
+@dataclass
+class Step:
+    key: str  # unique, also the marker's name
+    what: str  # shown on the progress bar
+    folder: Path  # outputs and log
+    command: list[str] | None = None
+    function: Callable[[], dict] | None = None
+    prepare: Callable[[], list[str] | None] | None = None  # before running: may replace the command (resume)
+    always: bool = False  # re-run every time (cheap summaries)
+
+    @property
+    def marker(self) -> Path:
+        return self.folder / f"{self.key.split('/')[-1]}.done.json"
+
+    def done(self) -> bool:
+        return not self.always and self.marker.is_file()
+
+
+def output_dir(cfg: StudyConfig) -> Path:
+    return Path(cfg.output_dir) if cfg.output_dir else Path("outputs/study") / cfg.name
+
+
+def bin_path(name: str) -> str:
+    return str(Path(sys.prefix) / "bin" / name)
+
+
+def validate(cfg: StudyConfig) -> None:
+    if cfg.simulator not in ("metaworld", "robosuite"):
+        raise StudyError(f"simulator must be metaworld or robosuite, got {cfg.simulator!r}.")
+    if not cfg.splits or not cfg.methods or not cfg.seeds:
+        raise StudyError("The study file must name at least one split, one method and one seed.")
+    for names, what in (([s.name for s in cfg.splits], "split"), ([m.name for m in cfg.methods], "method")):
+        if len(set(names)) != len(names):
+            raise StudyError(f"Two {what}s share a name in {names}: names are folders and columns.")
+    for m in cfg.methods:
+        if m.kind not in ("train", "bc_idm") or m.data not in ("mix", "demo"):
+            raise StudyError(
+                f"Method {m.name!r}: kind must be train or bc_idm and data mix or demo (got {m.kind}, {m.data})."
+            )
+        for path in [m.config] + ([m.idm_config] if m.kind == "bc_idm" else []):
+            if not Path(path).is_file():
+                raise StudyError(
+                    f"Method {m.name!r}: train config {path} does not exist (paths are relative to "
+                    "the folder jept-study runs in)."
+                )
+    if cfg.steps < 1 or cfg.eval_episodes < 1:
+        raise StudyError("steps and eval_episodes must be at least 1.")
+    if cfg.device not in ("cpu", "cuda", "mps"):
+        raise StudyError(f"--device must be cpu, cuda or mps, got {cfg.device!r}.")
+
+
+def slug(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def build_command(cfg: StudyConfig, split: SplitSpec) -> list[str]:
+    b = cfg.build
+    return [
+        bin_path(f"jept-build-{cfg.simulator}"),
+        f"--repo_id={split.repo_id}",
+        f"--demo_tasks=[{', '.join(split.demo_tasks)}]",
+        f"--video_tasks=[{', '.join(split.video_tasks)}]",
+        f"--unseen_tasks=[{', '.join(split.unseen_tasks)}]",
+        f"--episodes_per_task={b.episodes_per_task}",
+        f"--prompts_per_task={b.prompts_per_task}",
+        f"--probe_episodes_per_task={b.probe_episodes_per_task}",
+        f"--image_size={b.image_size}",
+        f"--seed={b.seed}",
+        f"--num_workers={b.num_workers}",
+        *b.args,
+    ]
+
+
+def train_step(
+    cfg: StudyConfig,
+    key: str,
+    folder: Path,
+    config: str,
+    data: list[str],
+    seed: int,
+    extra: list[str],
+    prompts: str | None,
+) -> Step:
+    """``lerobot-train`` into ``folder/train``; resumes from its last checkpoint after a kill."""
+    out = folder / "train"
+    command = [
+        bin_path("lerobot-train"),
+        f"--config_path={config}",
+        *data,
+        *([f"--policy.prompt_repo_id={prompts}"] if prompts else []),
+        f"--seed={seed}",
+        f"--steps={cfg.steps}",
+        f"--save_freq={min(cfg.save_freq, cfg.steps)}",
+        f"--output_dir={out}",
+        f"--policy.device={cfg.device}",
+        *cfg.train_args,
+        *extra,
+    ]
+
+    def prepare() -> list[str] | None:
+        last = out / "checkpoints/last/pretrained_model/train_config.json"
+        if last.is_file():  # killed after a checkpoint: LeRobot's own resume
+            return [bin_path("lerobot-train"), f"--config_path={last}", "--resume=true"]
+        shutil.rmtree(out, ignore_errors=True)  # killed before any checkpoint: start clean
+        return None
+
+    return Step(key, key, folder, command, prepare=prepare)
+
+
+def checkpoint(folder: Path) -> Path:
+    return folder / "train/checkpoints/last/pretrained_model"
+
+
+def run_folder(out: Path, split: SplitSpec, method: MethodSpec, seed: int) -> Path:
+    return out / slug(split.name) / slug(method.name) / f"seed{seed}"
+
+
+def plan(cfg: StudyConfig) -> list[Step]:
+    out = output_dir(cfg)
+    steps = []
+    for split in cfg.splits:
+        split_dir = out / slug(split.name)
+        steps.append(
+            Step(f"{split.name}/build", f"build {split.repo_id}", split_dir, build_command(cfg, split))
+        )
+        if cfg.random_episodes > 0:
+            steps.append(
+                Step(
+                    f"{split.name}/random_floor",
+                    f"random floor {split.name}",
+                    split_dir,
+                    function=lambda split=split: random_floor(cfg, split),
+                )
+            )
+        for method in cfg.methods:
+            for seed in cfg.seeds:
+                folder = run_folder(out, split, method, seed)
+                key = f"{split.name}/{method.name}/seed{seed}"
+                prompts = f"{split.repo_id}_prompts"
+                if method.kind == "bc_idm":
+                    idm = folder / "idm"
+                    demo = [f"--dataset.repo_id={split.repo_id}_demo"]
+                    steps.append(
+                        train_step(
+                            cfg, f"{key}/idm", idm, method.idm_config, demo, seed, method.idm_args, None
+                        )
+                    )
+                    relabelled = f"{split.repo_id}_mix_idm"
+                    relabel_root = folder / "relabelled"
+                    steps.append(
+                        Step(
+                            f"{key}/relabel",
+                            f"{key}/relabel",
+                            folder,
+                            [
+                                bin_path("jept-relabel"),
+                                f"--policy.path={checkpoint(idm)}",
+                                f"--dataset.repo_id={split.repo_id}_mix",
+                                f"--output_repo_id={relabelled}",
+                                f"--output_root={relabel_root}",
+                                f"--heldout_repo_id={split.repo_id}_probe",
+                            ],
+                            prepare=lambda root=relabel_root: shutil.rmtree(root, ignore_errors=True),
+                        )
+                    )
+                    data = [f"--dataset.repo_id={relabelled}", f"--dataset.root={relabel_root}"]
+                else:
+                    data = [f"--dataset.repo_id={split.repo_id}_{method.data}"]
+                steps.append(
+                    train_step(cfg, f"{key}/train", folder, method.config, data, seed, method.args, prompts)
+                )
+                suite = [
+                    bin_path("jept-eval-suite"),
+                    f"--policy.path={checkpoint(folder)}",
+                    f"--policy.device={cfg.device}",
+                    f"--dataset.repo_id={split.repo_id}_mix",
+                    f"--n_episodes={cfg.eval_episodes}",
+                    f"--batch_size={min(cfg.eval_batch_size, cfg.eval_episodes)}",
+                    f"--seed={cfg.eval_seed}",
+                    f"--output_dir={folder / 'suite'}",
+                ]
+                if cfg.eval_episode_length:
+                    suite.append(f"--episode_length={cfg.eval_episode_length}")
+                steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite))
+        runs = {m.name: [str(run_folder(out, split, m, s) / "suite") for s in cfg.seeds] for m in cfg.methods}
+        steps.append(
+            Step(
+                f"{split.name}/compare",
+                f"compare {split.name}",
+                split_dir,
+                [
+                    bin_path("jept-compare"),
+                    f"--runs={json.dumps(runs)}",
+                    f"--output_dir={split_dir / 'compare'}",
+                ],
+                always=True,
+            )
+        )
+    return steps
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Running it.
+
+
+def run_step(step: Step, bar: tqdm) -> dict:
+    step.folder.mkdir(parents=True, exist_ok=True)
+    log = step.folder / f"{step.key.split('/')[-1]}.log"
+    start = time.perf_counter()
+    command = step.command
+    if step.prepare is not None:
+        command = step.prepare() or command
+    if step.function is not None:
+        bar.write(f"[{step.key}] (in process)")
+        info = step.function()
+    else:
+        bar.write(f"\n$ {shlex.join(command)}")
+        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+        with open(log, "a") as f:
+            f.write(f"\n$ {shlex.join(command)}\n")
+            f.flush()
+            code = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
+        if code != 0:
+            tail = "\n".join(log.read_text().splitlines()[-25:])
+            raise StudyError(
+                f"Step {step.key} failed (exit {code}); its log is {log}. Fix the cause and re-run the same "
+                f"jept-study command: finished steps are kept.\n--- last lines of the log ---\n{tail}"
+            )
+        info = {"command": command}
+    info["seconds"] = time.perf_counter() - start
+    if not step.always:
+        step.marker.write_text(json.dumps(info, indent=2))
+    return info
+
+
+def run_study(cfg: StudyConfig) -> Path:
+    validate(cfg)
+    out = output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "study.json").write_text(json.dumps(draccus.encode(cfg), indent=2, default=str))
+    steps = plan(cfg)
+    todo = [s for s in steps if not s.done()]
+    print(
+        f"jept-study {cfg.name}: {len(steps)} steps, {len(steps) - len(todo)} already done, outputs in {out}"
+    )
+    start = time.perf_counter()
+    with tqdm(total=len(steps), initial=len(steps) - len(todo), desc="study", unit="step") as bar:
+        for step in steps:
+            if step.done():
+                continue
+            bar.set_postfix_str(step.what)
+            info = run_step(step, bar)
+            bar.write(f"[{step.key}] done in {info['seconds']:.0f} s")
+            bar.update(1)
+    report = write_report(cfg)
+    print(f"\nStudy finished in {time.perf_counter() - start:.0f} s (this run). Report: {report}")
+    return report
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The random 7-bin floor.
+
+
+def random_floor(cfg: StudyConfig, split: SplitSpec) -> dict:
+    """Success of a policy that picks every action dimension's bin uniformly at random, per task, on the
+    evaluation seeds of the suite (``eval_seed`` + episode), under the build's protocol."""
+    from lerobot_jept.discretization import bin_centres
+    from lerobot_jept.envs.rendering import setup_offscreen_gl
+    from lerobot_jept.suite import read_build_metadata
+
+    setup_offscreen_gl()
+    build, _ = read_build_metadata(f"{split.repo_id}_mix", None)
+    protocol = build["protocol"]
+    length = cfg.eval_episode_length or protocol["max_episode_steps"]
+    rng = np.random.default_rng(cfg.eval_seed)
+    per_task = {}
+    tasks = [*split.demo_tasks, *split.video_tasks, *split.unseen_tasks]
+    for task in tqdm(tasks, desc="random floor", unit="task", leave=False):
+        env = make_env(cfg.simulator, task, protocol, length)
+        low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
+        centres = np.asarray(bin_centres(protocol["action_bins"], low, high), dtype=np.float32)
+        successes = []
+        for episode in range(cfg.random_episodes):
+            env.reset(seed=cfg.eval_seed + episode)
+            success = False
+            while True:
+                action = centres[rng.integers(len(centres), size=env.action_space.shape)]
+                _, _, terminated, truncated, info = env.step(action)
+                success = success or bool(info.get("is_success", False))
+                if terminated or truncated:
+                    break
+            successes.append(success)
+        env.close()
+        per_task[task] = {"pc_success": 100.0 * float(np.mean(successes)), "successes": successes}
+    return {"episodes": cfg.random_episodes, "per_task": per_task}
+
+
+def make_env(simulator: str, task: str, protocol: dict, length: int):
+    if simulator == "metaworld":
+        from lerobot_jept.envs.metaworld import JeptMetaworldEnv
+
+        return JeptMetaworldEnv(
+            task,
+            image_size=protocol["image_size"],
+            action_repeat=protocol["action_repeat"],
+            max_episode_steps=length,
+        )
+    from lerobot_jept.envs.robosuite import JeptRobosuiteEnv
+
+    return JeptRobosuiteEnv(task, image_size=protocol["image_size"], max_episode_steps=length)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The report.
+
+
+def interval(values: list[float]) -> tuple[float, float, float]:
+    """Mean and 95% t interval over seeds (the mean twice with one seed)."""
+    values = [v for v in values if v == v]
+    if not values:
+        return math.nan, math.nan, math.nan
+    mean = float(np.mean(values))
+    if len(values) < 2:
+        return mean, mean, mean
+    low, high = t_interval(values, 0.95)
+    return mean, low, high
+
+
+def fmt(mean: float, low: float, high: float, digits: int = 1, scale: float = 1.0) -> str:
+    if mean != mean:
+        return "-"
+    m, lo, hi = mean * scale, low * scale, high * scale
+    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
+    """The offline probe per split group, mean [95% interval] over seeds, per method."""
+    out = output_dir(cfg)
+    values: dict[str, dict[str, dict[str, list[float]]]] = {}
+    for method in cfg.methods:
+        for seed in cfg.seeds:
+            path = run_folder(out, split, method, seed) / "suite/results.json"
+            if not path.is_file():
+                continue
+            probe = json.loads(path.read_text()).get("prompt_probe") or {}
+            for group, row in probe.get("splits", {}).items():
+                for measure in PROBE_MEASURES:
+                    if measure in row:
+                        values.setdefault(method.name, {}).setdefault(group, {}).setdefault(
+                            measure, []
+                        ).append(row[measure])
+    if not values:
+        return "", {}
+    lines = [
+        "| Method | Split | control whole (%) | control per-dim (%) | inverse whole (%) | inverse per-dim (%) "
+        "| L_obs |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    summary: dict = {}
+    for method, groups in values.items():
+        for group, measures in groups.items():
+            cells = []
+            for measure in PROBE_MEASURES:
+                stats = interval(measures.get(measure, []))
+                summary.setdefault(method, {}).setdefault(group, {})[measure] = stats
+                scale, digits = (1.0, 3) if measure == "loss_obs" else (100.0, 1)
+                cells.append(fmt(*stats, digits=digits, scale=scale))
+            lines.append(f"| {method} | {group} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n", summary
+
+
+def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, list[list[float]]]]:
+    """loss_obs / loss_act per logged step of every run, from the lerobot-train logs."""
+    out = output_dir(cfg)
+    curves: dict[str, dict[str, list[list[float]]]] = {}
+    for method in cfg.methods:
+        for seed in cfg.seeds:
+            folder = run_folder(out, split, method, seed)
+            log = folder / "train.log"
+            config = checkpoint(folder) / "train_config.json"
+            if not log.is_file() or not config.is_file():
+                continue
+            freq = json.loads(config.read_text()).get("log_freq", 1)
+            series: dict[str, list[float]] = {}
+            for line in log.read_text().splitlines():
+                if " step:" not in f" {line}":
+                    continue
+                for name in ("loss_obs", "loss_act"):
+                    match = re.search(rf"\b{name}:([-+0-9.eE]+)", line)
+                    if match:
+                        series.setdefault(name, []).append(float(match.group(1)))
+            for name, ys in series.items():
+                curves.setdefault(method.name, {}).setdefault(name, []).append(
+                    [freq * (i + 1) for i in range(len(ys))] + ys
+                )
+    return curves
+
+
+def plot_curves(curves: dict, path: Path, title: str) -> bool:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in ("loss_obs", "loss_act") if any(n in c for c in curves.values())]
+    if not names:
+        return False
+    fig, axes = plt.subplots(1, len(names), figsize=(6 * len(names), 4), squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, name in zip(axes[0], names, strict=True):
+        for i, (method, series) in enumerate(curves.items()):
+            for j, run in enumerate(series.get(name, [])):
+                half = len(run) // 2
+                ax.plot(
+                    run[:half],
+                    run[half:],
+                    color=colours[i % len(colours)],
+                    alpha=0.7,
+                    label=method if j == 0 else None,
+                )
+        ax.set_xlabel("step")
+        ax.set_ylabel(name)
+        ax.set_title(f"{title}: {name} (one line per seed)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def plot_table2(cfg: StudyConfig, rows: dict[int, dict[str, dict]], path: Path) -> None:
+    """Success against the number of T_vid tasks (the paper's Table 2), per method, with the paper's JEPT."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    xs = sorted(rows)
+    for ax, row in zip(axes, ("T_demo", "Unseen average"), strict=True):
+        for method in cfg.methods:
+            cells = [rows[x].get(method.name, {}).get(row) for x in xs]
+            pts = [(x, c) for x, c in zip(xs, cells, strict=True) if c]
+            if not pts:
+                continue
+            means = [c["mean"] for _, c in pts]
+            err = [[c["mean"] - c["low"] for _, c in pts], [c["high"] - c["mean"] for _, c in pts]]
+            ax.errorbar(
+                [x for x, _ in pts],
+                means,
+                yerr=np.clip(err, 0, None),
+                marker="o",
+                capsize=3,
+                label=method.name,
+            )
+        paper = [(x, PAPER_TABLE2[x][row]) for x in xs if x in PAPER_TABLE2]
+        if paper and cfg.simulator == "metaworld":
+            ax.plot(*zip(*paper, strict=True), "k--", marker="s", label="JEPT (paper)")
+        ax.set_xlabel("number of video-only tasks (T_vid)")
+        ax.set_ylabel(f"{row} success (%)")
+        ax.set_ylim(0, 100)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(cfg: StudyConfig) -> Path:
+    """``report.md`` (and its plots) from the compare, suite and training outputs of the study."""
+    out = output_dir(cfg)
+    lines = [
+        f"# Study `{cfg.name}` ({cfg.simulator})",
+        "",
+        f"Methods: {', '.join(m.name for m in cfg.methods)}; training seeds {cfg.seeds}, {cfg.steps} steps each; "
+        f"{cfg.eval_episodes} evaluation episodes per task and seed (env seeds from {cfg.eval_seed}). Success % "
+        "is the mean over training seeds with a 95% Student's t interval over seeds.",
+        "",
+    ]
+    table2: dict[int, dict[str, dict]] = {}
+    for split in cfg.splits:
+        split_dir = out / slug(split.name)
+        comparison_path = split_dir / "compare/comparison.json"
+        lines += [f"## {split.name}: `{split.repo_id}`", ""]
+        for name, tasks in (
+            ("T_demo", split.demo_tasks),
+            ("T_vid", split.video_tasks),
+            ("T_unseen", split.unseen_tasks),
+        ):
+            lines.append(f"- {name}: {', '.join(tasks) or '(none)'}")
+        lines.append("")
+        if not comparison_path.is_file():
+            lines += ["(not run yet)", ""]
+            continue
+        comparison = json.loads(comparison_path.read_text())
+        floor_path = split_dir / "random_floor.done.json"
+        floor = json.loads(floor_path.read_text()) if floor_path.is_file() else None
+        lines += success_table(comparison, floor, split)
+        lines += [f"![success]({comparison_path.parent.relative_to(out) / 'comparison.png'})", ""]
+        probe, _ = probe_table(cfg, split)
+        if probe:
+            lines += [
+                "Offline probe on the held-out `_probe` repo (action-bin accuracy of a_t: `control` = the action "
+                "the policy would choose, `inverse` = JEPT's inverse dynamics from the real next frame; L_obs = "
+                "JEPT's next-embedding error), mean [95% interval] over seeds:",
+                "",
+                probe,
+            ]
+        curves = training_curves(cfg, split)
+        if plot_curves(curves, split_dir / "training_curves.png", split.name):
+            lines += [f"![training curves]({Path(slug(split.name)) / 'training_curves.png'})", ""]
+        table2[len(split.video_tasks)] = {
+            method: {row: cells.get(row) for row in ("T_demo", "Unseen average")}
+            for method, cells in comparison["table"].items()
+        }
+    if len(cfg.splits) > 1 and table2:
+        plot_table2(cfg, table2, out / "table2.png")
+        lines += ["## Success against the number of video-only tasks", "", "![table 2](table2.png)", ""]
+    report = out / "report.md"
+    report.write_text("\n".join(lines))
+    return report
+
+
+def success_table(comparison: dict, floor: dict | None, split: SplitSpec) -> list[str]:
+    """The comparison's rows (mean [interval] per method, the paper's columns) with the random floor."""
+    from lerobot_jept.suite import summarise
+
+    table, paper = comparison["table"], comparison.get("paper") or {}
+    rows = list(next(iter(table.values())))
+    floor_rows = {}
+    if floor:
+        floor_rows = summarise(
+            comparison["split"], {t: r["pc_success"] for t, r in floor["per_task"].items()}
+        )
+    header = ["Row"] + list(table) + (["Random 7-bin"] if floor else []) + [f"{m} (paper)" for m in paper]
+    lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
+    for row in rows:
+        cells = [fmt(table[m][row]["mean"], table[m][row]["low"], table[m][row]["high"]) for m in table]
+        if floor:
+            cells.append(f"{floor_rows.get(row, math.nan):.1f}")
+        cells += [f"{paper[m][row]:.1f}" for m in paper]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    if floor:
+        lines += [
+            "",
+            f"Random 7-bin: a uniformly random bin per action dimension, {floor['episodes']} episodes per "
+            "task on the same env seeds.",
+        ]
+    if comparison.get("paper_source"):
+        lines.append(f"Paper columns: {comparison['paper_source']}.")
+    return lines + [""]
+
+
+def main(args: list[str] | None = None) -> None:
+    logging.basicConfig(level=logging.WARNING)
+    args = list(sys.argv[1:] if args is None else args)
+    config_path = None
+    for i, arg in enumerate(args):
+        if arg.startswith("--config="):
+            config_path = args.pop(i).split("=", 1)[1]
+            break
+    if config_path is not None and not Path(config_path).is_file():
+        sys.exit(f"jept-study: --config={config_path} does not exist (studies ship in examples/studies/).")
+    cfg = draccus.parse(StudyConfig, config_path=config_path, args=args)
+    try:
+        run_study(cfg)
+    except StudyError as err:
+        sys.exit(f"jept-study: {err}")
