@@ -133,12 +133,29 @@ class Step:
     prepare: Callable[[], list[str] | None] | None = None  # before running: may replace the command (resume)
     always: bool = False  # re-run every time (cheap summaries)
 
+    signature: list[str] | None = None  # what the marker must record (default: the command)
+
     @property
     def marker(self) -> Path:
         return self.folder / f"{self.key.split('/')[-1]}.done.json"
 
+    @property
+    def planned(self) -> list[str]:
+        return self.signature or self.command or []
+
     def done(self) -> bool:
-        return not self.always and self.marker.is_file()
+        """Finished by an earlier run of the same study; a marker of another command is an error (the output
+        folder holds another study's runs), never silently reused or overwritten."""
+        if self.always or not self.marker.is_file():
+            return False
+        recorded = json.loads(self.marker.read_text()).get("planned")
+        if recorded != self.planned:
+            raise StudyError(
+                f"{self.marker} was written for another command:\n  {shlex.join(recorded or [])}\nnow:\n  "
+                f"{shlex.join(self.planned)}\nThe study file changed since that run: pass another --output_dir, "
+                f"or delete {self.folder} to redo it."
+            )
+        return True
 
 
 def output_dir(cfg: StudyConfig) -> Path:
@@ -255,6 +272,12 @@ def plan(cfg: StudyConfig) -> list[Step]:
                     f"random floor {split.name}",
                     split_dir,
                     function=lambda split=split: random_floor(cfg, split),
+                    signature=[
+                        "random_floor",
+                        f"episodes={cfg.random_episodes}",
+                        f"seed={cfg.eval_seed}",
+                        f"length={cfg.eval_episode_length}",
+                    ],
                 )
             )
         for method in cfg.methods:
@@ -352,7 +375,7 @@ def run_step(step: Step, bar: tqdm) -> dict:
                 f"jept-study command: finished steps are kept.\n--- last lines of the log ---\n{tail}"
             )
         info = {"command": command}
-    info["seconds"] = time.perf_counter() - start
+    info.update(planned=step.planned, seconds=time.perf_counter() - start)
     if not step.always:
         step.marker.write_text(json.dumps(info, indent=2))
     return info
@@ -446,7 +469,7 @@ def interval(values: list[float]) -> tuple[float, float, float]:
         return math.nan, math.nan, math.nan
     mean = float(np.mean(values))
     if len(values) < 2:
-        return mean, mean, mean
+        return mean, math.nan, math.nan
     low, high = t_interval(values, 0.95)
     return mean, low, high
 
@@ -455,6 +478,8 @@ def fmt(mean: float, low: float, high: float, digits: int = 1, scale: float = 1.
     if mean != mean:
         return "-"
     m, lo, hi = mean * scale, low * scale, high * scale
+    if lo != lo:  # one seed: no interval
+        return f"{m:.{digits}f}"
     return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
@@ -486,7 +511,9 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
         for group, measures in groups.items():
             cells = []
             for measure in PROBE_MEASURES:
-                stats = interval(measures.get(measure, []))
+                mean, low, high = interval(measures.get(measure, []))
+                bound = math.inf if measure == "loss_obs" else 1.0  # accuracies lie in [0, 1]
+                stats = (mean, max(low, 0.0), min(high, bound)) if low == low else (mean, low, high)
                 summary.setdefault(method, {}).setdefault(group, {})[measure] = stats
                 scale, digits = (1.0, 3) if measure == "loss_obs" else (100.0, 1)
                 cells.append(fmt(*stats, digits=digits, scale=scale))
@@ -598,7 +625,8 @@ def write_report(cfg: StudyConfig) -> Path:
         "",
         f"Methods: {', '.join(m.name for m in cfg.methods)}; training seeds {cfg.seeds}, {cfg.steps} steps each; "
         f"{cfg.eval_episodes} evaluation episodes per task and seed (env seeds from {cfg.eval_seed}). Success % "
-        "is the mean over training seeds with a 95% Student's t interval over seeds.",
+        "is the mean over training seeds with a 95% Student's t interval over seeds (with one seed: a bootstrap "
+        "interval over its evaluation episodes).",
         "",
     ]
     table2: dict[int, dict[str, dict]] = {}

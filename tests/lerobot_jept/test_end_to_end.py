@@ -155,7 +155,9 @@ def test_eval_suite_writes_table_and_chart(trained):
         assert 0 <= row["control_whole"] <= row["control_per_dim"] <= 1
         assert 0 <= row["inverse_whole"] <= row["inverse_per_dim"] <= 1 and row["loss_obs"] > 0
     assert list(probe["splits"]) == ["T_demo", "T_vid", "T_unseen"]
-    assert probe["splits"]["T_vid"]["control_per_dim"] == probe["actions"]["drawer-close-v3"]["control_per_dim"]
+    assert (
+        probe["splits"]["T_vid"]["control_per_dim"] == probe["actions"]["drawer-close-v3"]["control_per_dim"]
+    )
     assert "Prompt embedding E_prt" in (suite / "results.md").read_text()
     assert "| T_unseen | 1 |" in (suite / "results.md").read_text()
     assert (suite / "prompt_probe.json").is_file()

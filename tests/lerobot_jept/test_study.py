@@ -1,0 +1,255 @@
+"""jept-study: the plan, resumption, the report's numbers, and a micro study run for real (slow)."""
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from lerobot_jept.compare import CompareConfig, compare
+from lerobot_jept.prompt_probe import bin_accuracy, split_summary
+from lerobot_jept.study import (
+    BuildSpec,
+    MethodSpec,
+    SplitSpec,
+    StudyConfig,
+    StudyError,
+    main,
+    plan,
+    run_folder,
+    validate,
+    write_report,
+)
+from tests.conftest import TINY
+from tests.lerobot_jept.test_baselines import suite_output
+
+REPO = Path(__file__).parents[2]
+CONFIGS = REPO / "examples/configs"
+SPLIT = {"demo": ["a"], "video": ["b"], "unseen": ["c"]}
+
+
+def study(tmp_path: Path, **kwargs) -> StudyConfig:
+    defaults = dict(
+        name="t",
+        splits=[SplitSpec("s", "test/x", ["a"], ["b"], ["c"])],
+        methods=[
+            MethodSpec("JEPT", config=str(CONFIGS / "train_jept_small_cpu.json")),
+            MethodSpec(
+                "BC+IDM",
+                kind="bc_idm",
+                config=str(CONFIGS / "train_dt_star_small_cpu.json"),
+                idm_config=str(CONFIGS / "train_idm_small_cpu.json"),
+            ),
+        ],
+        seeds=[1, 2],
+        steps=10,
+        random_episodes=0,
+        output_dir=tmp_path / "study",
+    )
+    return StudyConfig(**{**defaults, **kwargs})
+
+
+def test_plan_runs_the_real_entry_points_in_order(tmp_path):
+    cfg = study(tmp_path, random_episodes=3)
+    steps = plan(cfg)
+    keys = [s.key for s in steps]
+    assert keys[:2] == ["s/build", "s/random_floor"] and keys[-1] == "s/compare"
+    assert keys[2:4] == ["s/JEPT/seed1/train", "s/JEPT/seed1/suite"]
+    assert keys[6:10] == [
+        "s/BC+IDM/seed1/idm",
+        "s/BC+IDM/seed1/relabel",
+        "s/BC+IDM/seed1/train",
+        "s/BC+IDM/seed1/suite",
+    ]
+    assert len(steps) == 2 + 2 * 2 + 4 * 2 + 1
+    commands = {s.key: s.command for s in steps}
+    assert Path(commands["s/build"][0]).name == "jept-build-metaworld"
+    assert "--probe_episodes_per_task=4" in commands["s/build"]
+    train = commands["s/JEPT/seed2/train"]
+    assert Path(train[0]).name == "lerobot-train" and "--seed=2" in train
+    assert "--dataset.repo_id=test/x_mix" in train and "--policy.prompt_repo_id=test/x_prompts" in train
+    idm = commands["s/BC+IDM/seed1/idm"]
+    assert "--dataset.repo_id=test/x_demo" in idm and not any("prompt_repo_id" in a for a in idm)
+    relabel = commands["s/BC+IDM/seed1/relabel"]
+    bc = commands["s/BC+IDM/seed1/train"]
+    root = next(a for a in relabel if a.startswith("--output_root=")).split("=", 1)[1]
+    assert f"--dataset.root={root}" in bc and "--heldout_repo_id=test/x_probe" in relabel
+    suite = commands["s/JEPT/seed1/suite"]
+    assert Path(suite[0]).name == "jept-eval-suite" and "--dataset.repo_id=test/x_mix" in suite
+    compare_runs = json.loads(
+        next(a for a in commands["s/compare"] if a.startswith("--runs=")).split("=", 1)[1]
+    )
+    assert list(compare_runs) == ["JEPT", "BC+IDM"] and len(compare_runs["JEPT"]) == 2
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"methods": []}, "at least one split, one method and one seed"),
+        ({"methods": [MethodSpec("A"), MethodSpec("A")]}, "share a name"),
+        ({"methods": [MethodSpec("A", config="nope.json")]}, "nope.json does not exist"),
+        ({"methods": [MethodSpec("A", kind="rl")]}, "kind must be train or bc_idm"),
+        ({"device": "tpu"}, "--device must be"),
+    ],
+)
+def test_bad_study_files_get_one_clear_error(tmp_path, change, message):
+    with pytest.raises(StudyError, match=message):
+        validate(study(tmp_path, **change))
+
+
+def test_killed_training_resumes_from_its_checkpoint_or_restarts_clean(tmp_path):
+    cfg = study(tmp_path)
+    step = next(s for s in plan(cfg) if s.key == "s/JEPT/seed1/train")
+    train = step.folder / "train"
+    (train / "logs").mkdir(parents=True)
+    assert step.prepare() is None and not train.exists()  # killed before any checkpoint: start clean
+    last = train / "checkpoints/last/pretrained_model"
+    last.mkdir(parents=True)
+    (last / "train_config.json").write_text("{}")
+    resumed = step.prepare()
+    assert resumed[1:] == [f"--config_path={last / 'train_config.json'}", "--resume=true"]
+
+
+def test_a_marker_of_another_command_is_refused(tmp_path):
+    step = plan(study(tmp_path))[0]
+    step.folder.mkdir(parents=True)
+    step.marker.write_text(json.dumps({"planned": step.command}))
+    assert step.done()
+    changed = plan(study(tmp_path, build=BuildSpec(episodes_per_task=99)))[0]
+    with pytest.raises(StudyError, match="another command"):
+        changed.done()
+
+
+def test_probe_accuracy_on_a_hand_checked_batch():
+    predicted = torch.tensor([[0, 1, 2], [3, 3, 3], [6, 5, 4], [1, 1, 1]])
+    labels = torch.tensor([[0, 1, 2], [3, 0, 3], [6, 0, 0], [-100, -100, -100]])  # last row unlabelled
+    whole, per_dim = bin_accuracy(predicted, labels)
+    assert whole == pytest.approx(1 / 3)  # only the first of the three labelled rows is right in full
+    assert per_dim == pytest.approx((3 + 2 + 1) / 9)
+    assert all(math.isnan(v) for v in bin_accuracy(predicted[3:], labels[3:]))
+    rows = {
+        "a": {"control_whole": 0.5, "inverse_whole": 0.7, "loss_obs": 2.0},
+        "b": {"control_whole": 0.1, "inverse_whole": 0.3, "loss_obs": 4.0},
+        "b2": {"control_whole": 0.3, "inverse_whole": 0.5, "loss_obs": 6.0},
+    }
+    summary = split_summary(
+        rows, {"a": 1.0, "b": 0.5, "b2": 0.0}, {"demo": ["a"], "video": ["b", "b2"], "unseen": ["c"]}
+    )
+    assert list(summary) == ["T_demo", "T_vid"]  # no probed unseen task
+    assert summary["T_vid"]["control_whole"] == pytest.approx(0.2)
+    assert summary["T_vid"]["loss_obs"] == pytest.approx(5.0) and summary["T_vid"]["nc_accuracy"] == 0.25
+
+
+def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
+    cfg = study(tmp_path, seeds=[1, 2, 3])
+    out = Path(cfg.output_dir)
+    runs = {}
+    # JEPT: T_vid task b succeeds on 2, 4, 6 of 10 episodes -> 20, 40, 60; DT-like BC+IDM: 0 everywhere.
+    for method, hits in (("JEPT", [2, 4, 6]), ("BC+IDM", [0, 0, 0])):
+        m = next(x for x in cfg.methods if x.name == method)
+        for seed, n in zip(cfg.seeds, hits, strict=True):
+            folder = run_folder(out, cfg.splits[0], m, seed) / "suite"
+            suite_output(
+                folder, SPLIT, {"a": [True] * 10, "b": [True] * n + [False] * (10 - n), "c": [False] * 10}
+            )
+            results = json.loads((folder / "results.json").read_text())
+            probe = {"T_vid": {"control_whole": n / 10, "control_per_dim": 0.5}}
+            if method == "JEPT":
+                probe["T_vid"].update(inverse_whole=0.9, inverse_per_dim=0.95, loss_obs=1.5)
+            results["prompt_probe"] = {"splits": probe}
+            (folder / "results.json").write_text(json.dumps(results))
+            runs.setdefault(method, []).append(str(folder))
+    compare(CompareConfig(runs=runs, output_dir=out / "s/compare"))
+    report = write_report(cfg).read_text()
+    half = 4.302652729911275 * 20 / math.sqrt(3)  # t(0.975, 2) * sd(20, 40, 60) / sqrt(3)
+    # Success and accuracies are clipped to [0, 100]: 40 - 49.7 < 0.
+    assert f"| T_vid | 40.0 [0.0, {40 + half:.1f}] | 0.0 [0.0, 0.0] |" in report
+    assert f"| JEPT | T_vid | 40.0 [0.0, {40 + half:.1f}] | 50.0 [50.0, 50.0] | 90.0 " in report
+    assert "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - |" in report
+    assert "compare/comparison.png" in report
+
+
+@pytest.mark.slow
+def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build, tmp_path):
+    """The real entry points on the session's tiny build (its builder re-run is a no-op): JEPT and BC+IDM, one
+    seed, 2 steps, 10-step evaluations. Killed (with its children) during BC+IDM, re-run, then run again."""
+    config = {
+        "name": "micro",
+        "splits": [
+            {
+                "name": "tiny",
+                "repo_id": "test/mw_tiny",
+                "demo_tasks": TINY["demo_tasks"],
+                "video_tasks": TINY["video_tasks"],
+                "unseen_tasks": TINY["unseen_tasks"],
+            }
+        ],
+        "build": {
+            "episodes_per_task": TINY["episodes_per_task"],
+            "prompts_per_task": TINY["prompts_per_task"],
+            "probe_episodes_per_task": TINY["probe_episodes_per_task"],
+            "image_size": TINY["image_size"],
+            "num_workers": 1,
+            "args": [f"--episodes_per_shard={TINY['episodes_per_shard']}"],
+        },
+        "methods": [
+            {"name": "JEPT", "config": str(CONFIGS / "train_jept_small_cpu.json")},
+            {
+                "name": "BC+IDM",
+                "kind": "bc_idm",
+                "config": str(CONFIGS / "train_dt_star_small_cpu.json"),
+                "idm_config": str(CONFIGS / "train_idm_small_cpu.json"),
+            },
+        ],
+        "seeds": [1],
+        "steps": 2,
+        "train_args": ["--batch_size=2", "--num_workers=0", "--log_freq=1", "--policy.max_prompt_length=4"],
+        "eval_episodes": 1,
+        "eval_episode_length": 10,
+        "random_episodes": 1,
+        "output_dir": str(tmp_path / "out"),
+    }
+    path = tmp_path / "micro.json"
+    path.write_text(json.dumps(config))
+    out = tmp_path / "out/tiny"
+    proc = subprocess.Popen(
+        [str(Path(sys.executable).parent / "jept-study"), f"--config={path}"],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # its own process group: the kill takes lerobot-train with it
+    )
+    deadline = time.time() + 600
+    while time.time() < deadline and not (out / "BC_IDM/seed1/idm/train").exists():
+        assert proc.poll() is None, "the study ended before the kill"
+        time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (out / "JEPT/seed1/suite.done.json").is_file() and not (
+        out / "BC_IDM/seed1/suite.done.json"
+    ).exists()
+    jept_done = (out / "JEPT/seed1/train.done.json").stat().st_mtime
+
+    main([f"--config={path}"])  # resumes: JEPT is not trained again
+    assert (out / "JEPT/seed1/train.done.json").stat().st_mtime == jept_done
+    report = (tmp_path / "out/report.md").read_text()
+    assert "| T_vid |" in report and "| BC+IDM | T_vid |" in report and "Random 7-bin" in report
+    results = json.loads((out / "BC_IDM/seed1/suite/results.json").read_text())
+    assert results["policy_type"] == "dt_star" and results["prompt_probe"]["splits"]
+    assert (out / "training_curves.png").stat().st_size > 1000
+
+    rerun = subprocess.run(
+        [str(Path(sys.executable).parent / "jept-study"), f"--config={path}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert "9 steps, 8 already done" in rerun.stdout  # only jept-compare runs again
+    assert "lerobot-train" not in rerun.stdout + rerun.stderr
