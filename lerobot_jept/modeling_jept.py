@@ -240,6 +240,15 @@ class JEPTPolicy(DiscreteActionPolicy):
             "loss_obs": self._obs_loss(batch, tokens, pred_h)[0],
         }
 
+    @torch.no_grad()
+    def observation_embedding(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, joint_dim): the joint embedding of the last context frame over its k-frame context, averaged over
+        tokens."""
+        m, k = self.model, self.config.n_obs_steps
+        images, state = batch[self.config.image_key][:, :k], batch[OBS_STATE][:, :k]
+        obs = m.tokenize(m.encoder.tokenizer, m.backbone_tokens(images), state)
+        return m.encoder.temporal.context_embeddings(obs, first=k - 1)[:, 0].mean(1)
+
     def _encode_window(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
         """A training-shaped window (k + 1 frames) -> backbone tokens, observation tokens and the predictor's
         joint embedding inputs h_2..h_{k+1} (each frame encoded over the frames up to it)."""

@@ -254,6 +254,13 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         card.text += card_section(self.config, dataset_repo_id, dataset_meta)
         return card
 
+    @torch.no_grad()
+    def observation_embedding(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, D): the observation tokens of the last context frame of a preprocessed training-shaped batch,
+        averaged over tokens (what ``jept-visualize`` projects for the paper's Figure 3)."""
+        obs = self.model.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        return obs[:, self.config.n_obs_steps - 1].mean(1)
+
     # Control ----------------------------------------------------------------------------------------------
 
     def reset(self) -> None:

@@ -330,6 +330,7 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 if cfg.eval_episode_length:
                     suite.append(f"--episode_length={cfg.eval_episode_length}")
                 steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite))
+        steps += visualize_steps(cfg, split, split_dir)
         runs = {m.name: [str(run_folder(out, split, m, s) / "suite") for s in cfg.seeds] for m in cfg.methods}
         steps.append(
             Step(
@@ -345,6 +346,33 @@ def plan(cfg: StudyConfig) -> list[Step]:
             )
         )
     return steps
+
+
+def policy_type(method: MethodSpec) -> str:
+    return json.loads(Path(method.config).read_text())["policy"]["type"]
+
+
+def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list[Step]:
+    """``jept-visualize`` of the first JEPT method's first seed against the first other method's, on the probe
+    repo (Figures 3 and 5)."""
+    jept = [m for m in cfg.methods if policy_type(m) == "jept"]
+    others = [m for m in cfg.methods if policy_type(m) != "jept"]
+    if not jept:
+        return []
+    seed = cfg.seeds[0]
+    command = [
+        bin_path("jept-visualize"),
+        f"--policy.path={checkpoint(run_folder(output_dir(cfg), split, jept[0], seed))}",
+        f"--policy.device={cfg.device}",
+        f"--dataset.repo_id={split.repo_id}_probe",
+        f"--output_dir={split_dir / 'visualize'}",
+    ]
+    if others:
+        command.insert(
+            3, f"--baseline.path={checkpoint(run_folder(output_dir(cfg), split, others[0], seed))}"
+        )
+        command.insert(4, f"--baseline.device={cfg.device}")
+    return [Step(f"{split.name}/visualize", f"t-SNE figures {split.name}", split_dir, command)]
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -657,6 +685,17 @@ def write_report(cfg: StudyConfig) -> Path:
                 "JEPT's next-embedding error), mean [95% interval] over seeds:",
                 "",
                 probe,
+            ]
+        figures = split_dir / "visualize"
+        if (figures / "prompt_embeddings.png").is_file():
+            lines += [
+                "t-SNE of E_prt of every held-out probe episode used as a prompt (the paper's Figure 5) and of the "
+                "observation embeddings along one episode of a demo, a video and an unseen task (Figure 3), first "
+                "seed:",
+                "",
+                f"![prompt embeddings]({Path(slug(split.name)) / 'visualize/prompt_embeddings.png'}) "
+                f"![observation embeddings]({Path(slug(split.name)) / 'visualize/observation_embeddings.png'})",
+                "",
             ]
         curves = training_curves(cfg, split)
         if plot_curves(curves, split_dir / "training_curves.png", split.name):

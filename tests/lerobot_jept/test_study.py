@@ -67,7 +67,17 @@ def test_plan_runs_the_real_entry_points_in_order(tmp_path):
         "s/BC+IDM/seed1/train",
         "s/BC+IDM/seed1/suite",
     ]
-    assert len(steps) == 2 + 2 * 2 + 4 * 2 + 1
+    assert keys[-2] == "s/visualize" and len(steps) == 2 + 2 * 2 + 4 * 2 + 2
+    visualize = steps[-2].command
+    assert (
+        "--policy.path="
+        + str(
+            run_folder(Path(cfg.output_dir), cfg.splits[0], cfg.methods[0], 1)
+            / "train/checkpoints/last/pretrained_model"
+        )
+        in visualize
+    )
+    assert any(a.startswith("--baseline.path=") and "BC_IDM/seed1" in a for a in visualize)
     commands = {s.key: s.command for s in steps}
     assert Path(commands["s/build"][0]).name == "jept-build-metaworld"
     assert "--probe_episodes_per_task=4" in commands["s/build"]
@@ -243,6 +253,8 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
     results = json.loads((out / "BC_IDM/seed1/suite/results.json").read_text())
     assert results["policy_type"] == "dt_star" and results["prompt_probe"]["splits"]
     assert (out / "training_curves.png").stat().st_size > 1000
+    for figure in ("prompt_embeddings.png", "observation_embeddings.png"):  # jept-visualize, JEPT vs DT*
+        assert (out / "visualize" / figure).stat().st_size > 1000 and figure in report
 
     rerun = subprocess.run(
         [str(Path(sys.executable).parent / "jept-study"), f"--config={path}"],
@@ -251,5 +263,5 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
         text=True,
     )
     assert rerun.returncode == 0, rerun.stderr[-3000:]
-    assert "9 steps, 8 already done" in rerun.stdout  # only jept-compare runs again
+    assert "10 steps, 9 already done" in rerun.stdout  # only jept-compare runs again
     assert "lerobot-train" not in rerun.stdout + rerun.stderr
