@@ -12,10 +12,11 @@ VENV := .venv
 RUN := MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/python
 export UV_PYTHON_DOWNLOADS := never
 
-.PHONY: help setup system-deps demo test test-fast lint bench clean
+.PHONY: help setup system-deps demo study test test-fast lint bench clean
 
 help:
 	@echo "make demo   set up, build a tiny Meta-World mixture, train jept with lerobot-train, run the eval suite"
+	@echo "make study  set up, run examples/studies/cpu_small.json (resumable; about two hours here)"
 	@echo "make test   set up, lint, run every test (slow ones included)"
 	@echo "make bench  set up, print the benchmark figures (name: value)"
 
@@ -44,6 +45,9 @@ demo: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+
+study: setup
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/jept-study --config=examples/studies/cpu_small.json
 
 test: lint
 	$(RUN) -m pytest tests --durations=15

@@ -280,8 +280,8 @@ def plan(cfg: StudyConfig) -> list[Step]:
                     ],
                 )
             )
-        for method in cfg.methods:
-            for seed in cfg.seeds:
+        for seed in cfg.seeds:  # seed by seed: a study cut short still compares every method
+            for method in cfg.methods:
                 folder = run_folder(out, split, method, seed)
                 key = f"{split.name}/{method.name}/seed{seed}"
                 prompts = f"{split.repo_id}_prompts"

@@ -61,7 +61,7 @@ def test_plan_runs_the_real_entry_points_in_order(tmp_path):
     keys = [s.key for s in steps]
     assert keys[:2] == ["s/build", "s/random_floor"] and keys[-1] == "s/compare"
     assert keys[2:4] == ["s/JEPT/seed1/train", "s/JEPT/seed1/suite"]
-    assert keys[6:10] == [
+    assert keys[4:8] == [
         "s/BC+IDM/seed1/idm",
         "s/BC+IDM/seed1/relabel",
         "s/BC+IDM/seed1/train",
