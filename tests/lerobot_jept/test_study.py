@@ -265,3 +265,29 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert "10 steps, 9 already done" in rerun.stdout  # only jept-compare runs again
     assert "lerobot-train" not in rerun.stdout + rerun.stderr
+
+
+@pytest.mark.parametrize("name", ["cpu_small", "paper_metaworld", "paper_table2", "paper_robosuite"])
+def test_shipped_study_files_parse_and_plan(name, monkeypatch):
+    import draccus
+
+    from lerobot_jept.suite import PAPER_SPLIT
+
+    monkeypatch.chdir(REPO)  # the study files name their train configs relative to the repo
+    cfg = draccus.parse(StudyConfig, config_path=f"examples/studies/{name}.json", args=[])
+    validate(cfg)
+    steps = plan(cfg)
+    trains = [s for s in steps if s.key.endswith("/train")]
+    assert len(trains) == len(cfg.splits) * len(cfg.methods) * len(cfg.seeds) and len(cfg.seeds) >= 3
+    if name == "cpu_small":
+        split = cfg.splits[0]
+        assert len(split.video_tasks) >= 2 and len(split.unseen_tasks) >= 1 and cfg.device == "cpu"
+        assert {m.name for m in cfg.methods} >= {"JEPT", "DT*", "BC+IDM", "Vid2Robot-M"}
+    if name == "paper_metaworld":
+        split = cfg.splits[0]
+        assert {"demo": split.demo_tasks, "video": split.video_tasks, "unseen": split.unseen_tasks} == {
+            k: list(v) for k, v in PAPER_SPLIT.items()
+        }
+    if name == "paper_table2":
+        assert [len(s.video_tasks) for s in cfg.splits] == [0, 2, 4, 6]
+        assert cfg.splits[1].video_tasks == ["button-press-topdown-wall-v3", "door-open-v3"]  # Appendix B.2
