@@ -157,9 +157,10 @@ class JEPTPolicy(DiscreteActionPolicy):
             self._apply_phase()
         k = cfg.n_obs_steps
         tokens, obs, h_in = self._encode_window(batch)
+        targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
         pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
-        loss_obs, dist, frame_ok, targets = self._obs_loss(batch, tokens, pred_h)
+        loss_obs, dist, frame_ok = self._obs_loss(batch, pred_h, targets)
 
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
         loss_act, labelled = self.action_loss(logits, batch)
@@ -211,18 +212,21 @@ class JEPTPolicy(DiscreteActionPolicy):
             info["prompt_swap_gap"] = gap.mean().item()
         return extra, info
 
-    def _obs_loss(self, batch: dict[str, Tensor], tokens: Tensor, pred_h: Tensor) -> tuple[Tensor, ...]:
-        """L_obs (eq. 7): the L2 distance per token between predicted and EMA-target joint embeddings, averaged
-        over tokens and over the frames whose target is real -> per sample (B,), with the per-frame distances
-        (B, k), the real-frame mask (B, k) and the targets."""
+    @torch.no_grad()
+    def _targets(self, batch: dict[str, Tensor], tokens: Tensor) -> Tensor:
+        """The EMA target encoder's joint embeddings h_2..h_{k+1} of the window's backbone tokens."""
         m = self.model
-        with torch.no_grad():
-            target_obs = m.tokenize(m.target_encoder.tokenizer, tokens.detach(), batch[OBS_STATE])
-            targets = m.target_encoder.temporal.context_embeddings(target_obs, first=1)
+        target_obs = m.tokenize(m.target_encoder.tokenizer, tokens.detach(), batch[OBS_STATE])
+        return m.target_encoder.temporal.context_embeddings(target_obs, first=1)
+
+    def _obs_loss(self, batch: dict[str, Tensor], pred_h: Tensor, targets: Tensor) -> tuple[Tensor, ...]:
+        """L_obs (eq. 7): the L2 distance per token between predicted and target joint embeddings, averaged
+        over tokens and over the frames whose target is real -> per sample (B,), with the per-frame distances
+        (B, k) and the real-frame mask (B, k)."""
         dist = torch.linalg.vector_norm(pred_h - targets, dim=-1).mean(-1)
         pad = batch.get(f"{self.config.image_key}_is_pad")
         frame_ok = torch.ones_like(dist) if pad is None else (~pad[:, 1:]).float()
-        return frame_mean(dist, frame_ok), dist, frame_ok, targets
+        return frame_mean(dist, frame_ok), dist, frame_ok
 
     @torch.no_grad()
     def offline_outputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -231,13 +235,14 @@ class JEPTPolicy(DiscreteActionPolicy):
         from the real next frame's joint embedding (the inverse dynamics alone); and ``loss_obs`` (B,)."""
         m, k = self.model, self.config.n_obs_steps
         tokens, obs, h_in = self._encode_window(batch)
+        targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
         pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
         z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
         return {
             "control": m.action_head(z_next[:, None])[:, 0],
             "inverse": logits[:, -1],
-            "loss_obs": self._obs_loss(batch, tokens, pred_h)[0],
+            "loss_obs": self._obs_loss(batch, pred_h, targets)[0],
         }
 
     @torch.no_grad()
