@@ -1,0 +1,192 @@
+"""The build's configuration: the flags every ``jept-build-*`` command shares, the simulator interface, and
+the checks that reject bad flags before any work starts."""
+
+import abc
+from dataclasses import dataclass, field
+
+ROLES = ("demo", "video", "prompts", "probe")
+LABELLED_ROLES = ("demo", "probe")  # recorded with the executed action
+SPLITS = ("demo", "video", "unseen")
+BUILD_FILE = "jept_build.json"  # written in <work dir>/ and in every repo's meta/
+# Episode seeds: each (role, shard) owns a disjoint block of SEED_BLOCK seeds, so training episodes and
+# prompt videos and probe episodes never share a seed, and all stay clear of lerobot-eval's default seeds (1000 + episode).
+SEED_BLOCK = 10_000
+ROLE_SEED_BASE = {"demo": 10_000_000, "video": 10_000_000, "prompts": 20_000_000, "probe": 30_000_000}
+# Flags added after builds were made: a build recorded without one takes the value given now (its shards are
+# recorded on top of the existing ones), so an older build resumes with today's defaults.
+ADDED_FLAGS = ("probe_episodes_per_task",)
+# Flags that change what is written; a repo built with other values is never mixed with new episodes.
+CONTENT_FLAGS = (
+    "demo_tasks",
+    "video_tasks",
+    "unseen_tasks",
+    "episodes_per_task",
+    "prompts_per_task",
+    "probe_episodes_per_task",
+    "image_size",
+    "seed",
+    "action_bins",
+    "action_repeat",
+    "max_episode_steps",
+    "episodes_per_shard",
+    "vcodec",
+)
+
+
+EXECUTORS = ("local", "datatrove_local", "slurm")
+
+
+@dataclass
+class SlurmArgs:
+    """``--slurm.*``: where and how the array job of ``--executor=slurm`` runs."""
+
+    partition: str | None = None
+    workers: int = -1  # array tasks running at once (-1: as many as SLURM allows)
+    cpus_per_task: int = 2
+    mem_per_cpu: int = 4  # GB
+    time: str = "24:00:00"
+
+
+class BuildError(ValueError):
+    """A build request that cannot be carried out; the message says how to fix it."""
+
+
+@dataclass
+class BuildConfig:
+    """Flags shared by every ``jept-build-*`` command (the simulator's config sets the defaults).
+
+    Attributes:
+        repo_id: ``ORG/NAME``; the build writes ``ORG/NAME_demo``, ``_video``, ``_prompts`` and ``_mix``.
+        demo_tasks: T_demo, tasks recorded with actions.
+        video_tasks: T_vid, tasks recorded as expert videos without actions.
+        unseen_tasks: T_unseen, tasks that only get prompt videos.
+        episodes_per_task: successful expert episodes per demo/video task.
+        prompts_per_task: prompt videos per task (all three splits), seeds disjoint from training episodes.
+        probe_episodes_per_task: held-out labelled episodes per task (all three splits) in ``<repo_id>_probe``,
+            seeds disjoint from every other role; 0 for none.
+        image_size: side of the square camera image.
+        seed: base seed; the same flags and seed give the same episodes.
+        num_workers: parallel rollout processes (one simulator env per process).
+        action_bins: bins per action dimension; experts execute the nearest bin centre.
+        action_repeat: simulator steps per recorded step.
+        max_episode_steps: recorded steps before an episode is truncated (and rejected as a failure).
+        episodes_per_shard: unit of work and of resumption.
+        vcodec: video codec of the camera stream (``h264`` at the ``veryfast`` preset costs a fifth of the CPU
+            time of LeRobot's default ``libsvtav1``, which matters when rendering on a CPU; ``libsvtav1`` gives
+            smaller files).
+        root: folder holding the repos; default ``$HF_LEROBOT_HOME`` (where LeRobot looks for ``repo_id``).
+        executor: ``local`` (this process and ``num_workers`` pool processes), ``datatrove_local`` (datatrove's
+            local executor, ``num_workers`` tasks at once) or ``slurm`` (an array job of shard groups and a
+            dependent assembly job, through datatrove; needs the ``[cluster]`` extra). Same shards and episodes.
+        tasks: datatrove tasks (shard groups); default one per shard.
+        logs_dir: datatrove's logs; default ``<repo_id>.build/datatrove_logs``.
+        slurm: partition, workers, cpus_per_task, mem_per_cpu (GB), time of the SLURM jobs.
+        push_to_hub: push every repo with LeRobot's ``push_to_hub`` at the end.
+        private: create the Hub repos as private.
+    """
+
+    repo_id: str = "local/jept"
+    demo_tasks: list[str] = field(default_factory=list)
+    video_tasks: list[str] = field(default_factory=list)
+    unseen_tasks: list[str] = field(default_factory=list)
+    episodes_per_task: int = 500
+    prompts_per_task: int = 10
+    probe_episodes_per_task: int = 4
+    image_size: int = 224
+    seed: int = 0
+    num_workers: int = 1
+    action_bins: int = 7
+    action_repeat: int = 2
+    max_episode_steps: int = 250
+    episodes_per_shard: int = 25
+    vcodec: str = "h264"
+    root: str | None = None
+    executor: str = "local"
+    tasks: int | None = None
+    logs_dir: str | None = None
+    slurm: SlurmArgs = field(default_factory=SlurmArgs)
+    push_to_hub: bool = False
+    private: bool = False
+
+    def split(self) -> dict[str, list[str]]:
+        return {
+            "demo": list(self.demo_tasks),
+            "video": list(self.video_tasks),
+            "unseen": list(self.unseen_tasks),
+        }
+
+    def content_flags(self) -> dict:
+        return {name: getattr(self, name) for name in CONTENT_FLAGS}
+
+
+class Simulator(abc.ABC):
+    """What a simulator module provides to the core. Instances must be picklable (they go to workers)."""
+
+    name: str  # e.g. "metaworld"
+    robot_type: str
+
+    @abc.abstractmethod
+    def check_task(self, task: str) -> str:
+        """Return ``task`` or raise :class:`BuildError` listing close matches."""
+
+    @abc.abstractmethod
+    def task_description(self, task: str) -> str:
+        """The task string written to the datasets; equal to the eval env's ``task_description``."""
+
+    @abc.abstractmethod
+    def make_env(self, task: str, cfg: BuildConfig, role: str = "demo"):
+        """A gymnasium env with ``{"pixels", "agent_pos"}`` observations and an ``expert_action()`` method.
+        ``role`` is the repo being recorded (``"prompts"`` may show another embodiment than the others)."""
+
+    @abc.abstractmethod
+    def fps(self, cfg: BuildConfig) -> int:
+        """Recorded frames per second."""
+
+    @abc.abstractmethod
+    def observation_features(self, cfg: BuildConfig) -> dict:
+        """LeRobot features of the observation (``observation.image``, ``observation.state``)."""
+
+    @abc.abstractmethod
+    def action_feature(self) -> dict:
+        """LeRobot feature of the executed action."""
+
+    def protocol(self, cfg: BuildConfig) -> dict:
+        """What a reader of the dataset card needs to reproduce the observations."""
+        return {
+            "simulator": self.name,
+            "robot_type": self.robot_type,
+            "image_size": cfg.image_size,
+            "fps": self.fps(cfg),
+            "action_bins": cfg.action_bins,
+            "action_repeat": cfg.action_repeat,
+            "max_episode_steps": cfg.max_episode_steps,
+        }
+
+
+def validate(cfg: BuildConfig, sim: Simulator) -> None:
+    """Reject bad flags before any work starts, with one sentence that names the fix."""
+    if "/" not in cfg.repo_id or cfg.repo_id.count("/") != 1:
+        raise BuildError(f"--repo_id must look like ORG/NAME, got {cfg.repo_id!r}.")
+    for name in ("episodes_per_task", "prompts_per_task", "image_size", "num_workers", "episodes_per_shard"):
+        if getattr(cfg, name) < 1:
+            raise BuildError(f"--{name} must be at least 1, got {getattr(cfg, name)}.")
+    if cfg.probe_episodes_per_task < 0:
+        raise BuildError(f"--probe_episodes_per_task must be 0 or more, got {cfg.probe_episodes_per_task}.")
+    if cfg.executor not in EXECUTORS:
+        raise BuildError(f"--executor must be one of {', '.join(EXECUTORS)}, got {cfg.executor!r}.")
+    if cfg.tasks is not None and cfg.tasks < 1:
+        raise BuildError(f"--tasks must be at least 1, got {cfg.tasks}.")
+    if cfg.action_bins < 2:
+        raise BuildError(f"--action_bins must be at least 2, got {cfg.action_bins}.")
+    if cfg.action_repeat < 1 or cfg.max_episode_steps < 1:
+        raise BuildError("--action_repeat and --max_episode_steps must be at least 1.")
+    if not cfg.demo_tasks and not cfg.video_tasks:
+        raise BuildError("Nothing to train on: give at least one task in --demo_tasks or --video_tasks.")
+    seen: dict[str, str] = {}
+    for split, tasks in cfg.split().items():
+        for task in tasks:
+            sim.check_task(task)
+            if task in seen:
+                where = "twice in" if seen[task] == split else f"in both {seen[task]}_tasks and"
+                raise BuildError(f"Task {task!r} is {where} {split}_tasks: a task belongs to one split only.")
+            seen[task] = split
