@@ -39,6 +39,10 @@ for ((i=first; i<=last; i++)); do
 done
 echo "Submitted batch job $id"
 """
+SCONTROL = """#!/bin/bash
+# Stand-in for scontrol: `scontrol show hostnames NODELIST` (one node here).
+[ "$1 $2" = "show hostnames" ] && echo "$3"
+"""
 SRUN = """#!/bin/bash
 # Stand-in for srun: run the command (its last two words: launch_pickled_pipeline FILE).
 exec "${@: -2}"
@@ -78,7 +82,7 @@ def test_datatrove_local_gives_the_same_bytes(local_build, tmp_path):
 def test_slurm_array_job_and_dependent_assembly(local_build, tmp_path, monkeypatch):
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    for name, text in (("sbatch", SBATCH), ("srun", SRUN)):
+    for name, text in (("sbatch", SBATCH), ("srun", SRUN), ("scontrol", SCONTROL)):
         (bin_dir / name).write_text(text)
         (bin_dir / name).chmod((bin_dir / name).stat().st_mode | stat.S_IEXEC)
     log = tmp_path / "standin.log"
