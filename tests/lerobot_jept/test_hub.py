@@ -271,7 +271,7 @@ def test_builder_push_sends_every_repo_with_cards_and_tags(tiny_build, recording
     push_repos(paths, metadata)
     calls = recording_hub.calls
     created = [kw["repo_id"] for name, kw in calls if name == "create_repo"]
-    assert created == [f"test/mw_tiny_{r}" for r in ("demo", "video", "prompts", "mix")]
+    assert created == [f"test/mw_tiny_{r}" for r in ("demo", "video", "prompts", "probe", "mix")]
     uploads = {kw["repo_id"]: kw for name, kw in calls if name == "upload_folder"}
     for repo, upload in uploads.items():
         files = upload["files"]
@@ -283,12 +283,12 @@ def test_builder_push_sends_every_repo_with_cards_and_tags(tiny_build, recording
         assert any(f.startswith("videos/") and f.endswith(".mp4") for f in files), repo
     assert "action" not in json.loads(uploads["test/mw_tiny_video"]["contents"]["meta/info.json"])["features"]
     tags = {kw["repo_id"]: kw["tag"] for name, kw in calls if name == "create_tag"}
-    assert set(tags.values()) == {"v3.0"} and len(tags) == 4
+    assert set(tags.values()) == {"v3.0"} and len(tags) == 5
     cards = {
         kw["repo_id"]: kw["text"] for name, kw in calls if name == "upload_file" and kw["path"] == "README.md"
     }
-    assert len(cards) == 4
-    for role in ("demo", "video", "prompts", "mix"):
+    assert len(cards) == 5
+    for role in ("demo", "video", "prompts", "probe", "mix"):
         card = cards[f"test/mw_tiny_{role}"]
         assert "- T_demo: button-press-v3, reach-v3" in card and "- T_unseen: handle-press-v3" in card
         assert "image_size 64" in card and "action_bins 7" in card and "action_repeat 2" in card
@@ -296,6 +296,7 @@ def test_builder_push_sends_every_repo_with_cards_and_tags(tiny_build, recording
         assert "button-press-v3 100%" in card
         assert f"- {role}" in card and "- jept" in card and "- metaworld" in card  # card tags
     assert "no `action` column by design" in cards["test/mw_tiny_video"]
+    assert "never trained on" in cards["test/mw_tiny_probe"]
 
 
 def test_failed_builder_push_is_one_line_and_keeps_files(tiny_build, recording_hub):
