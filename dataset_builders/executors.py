@@ -30,15 +30,20 @@ def _datatrove():
         ) from None
 
 
-class RecordShardGroup(PipelineStep):
-    """Rank r of T: record the missing shards ``plan[r::T]``."""
+class BuildStep(PipelineStep):
+    """A datatrove pipeline step of a build: it carries the build's flags and simulator (both picklable)."""
 
-    name = "record shards"
     type = "jept-build"
 
     def __init__(self, cfg: BuildConfig, sim: Simulator):
         super().__init__()
         self.cfg, self.sim = cfg, sim
+
+
+class RecordShardGroup(BuildStep):
+    """Rank r of T: record the missing shards ``plan[r::T]``."""
+
+    name = "record shards"
 
     def run(self, data=None, rank: int = 0, world_size: int = 1):
         from dataset_builders.record import close_renderer, record_shard
@@ -55,15 +60,10 @@ class RecordShardGroup(PipelineStep):
             close_renderer()
 
 
-class AssembleBuild(PipelineStep):
+class AssembleBuild(BuildStep):
     """The dependent step: assemble the repos (and push them) once every shard is recorded."""
 
     name = "assemble repos"
-    type = "jept-build"
-
-    def __init__(self, cfg: BuildConfig, sim: Simulator):
-        super().__init__()
-        self.cfg, self.sim = cfg, sim
 
     def run(self, data=None, rank: int = 0, world_size: int = 1):
         from dataset_builders.core import finish
