@@ -225,7 +225,8 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
 
 
 SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
-MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs", "nc_accuracy")
+ACTION_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
+MEASURES = (*ACTION_MEASURES, "nc_accuracy")
 
 
 def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float], split: dict) -> dict:
@@ -248,8 +249,8 @@ def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float]
     return out
 
 
-def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> dict:
-    """The probe; ``split`` (builder task names per split) defaults to the probe repo's own build metadata."""
+def load_labelled(cfg: ProbeConfig):
+    """The checkpoint's policy and preprocessor, and the labelled repo with the policy's frame windows."""
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
@@ -269,6 +270,13 @@ def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> di
         root=cfg.dataset.root,
         delta_timestamps=resolve_delta_timestamps(policy.config, meta),
     )
+    return policy, pre, dataset
+
+
+def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> dict:
+    """The probe; ``split`` (builder task names per split) defaults to the probe repo's own build metadata."""
+    policy, pre, dataset = load_labelled(cfg)
+    meta = dataset.meta
     names = task_names(meta)
     if split is None and names is not None:
         split = json.loads((Path(meta.root) / "meta/jept_build.json").read_text())["split"]
@@ -309,7 +317,7 @@ def markdown(results: dict) -> str:
     for task, row in results["actions"].items():
         swap = ", ".join(f"{m}: {v:.2f}" for m, v in row["swap_changed"].items()) or "-"
         cells = [_cell(sep["per_task_accuracy"].get(task), 2), str(row["frames"])]
-        cells += [_cell(row.get(k)) for k in MEASURES[:5]]
+        cells += [_cell(row.get(k)) for k in ACTION_MEASURES]
         lines.append(f"| {task} | " + " | ".join(cells) + f" | {swap} |")
     if results.get("splits"):
         lines += [
@@ -319,7 +327,7 @@ def markdown(results: dict) -> str:
             "|---|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, row in results["splits"].items():
-            cells = [_cell(row.get("nc_accuracy"), 2)] + [_cell(row.get(k)) for k in MEASURES[:5]]
+            cells = [_cell(row.get("nc_accuracy"), 2)] + [_cell(row.get(k)) for k in ACTION_MEASURES]
             lines.append(f"| {name} | {len(row['tasks'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

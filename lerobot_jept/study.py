@@ -43,9 +43,8 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_jept.compare import t_interval
+from lerobot_jept.prompt_probe import ACTION_MEASURES as PROBE_MEASURES
 
-STUDY_SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
-PROBE_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
 # The paper's Table 2 (JEPT, success %) against the number of T_vid tasks in the mixture.
 PAPER_TABLE2 = {
     0: {"T_demo": 59.5, "Unseen average": 1.5},
@@ -552,7 +551,7 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
 def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, list[list[float]]]]:
     """loss_obs / loss_act per logged step of every run, from the lerobot-train logs."""
     out = output_dir(cfg)
-    curves: dict[str, dict[str, list[list[float]]]] = {}
+    curves: dict[str, dict[str, list[tuple[list[int], list[float]]]]] = {}
     for method in cfg.methods:
         for seed in cfg.seeds:
             folder = run_folder(out, split, method, seed)
@@ -563,6 +562,8 @@ def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, l
             freq = json.loads(config.read_text()).get("log_freq", 1)
             series: dict[str, list[float]] = {}
             for line in log.read_text().splitlines():
+                if line.startswith("$ ") and "--resume=true" not in line:
+                    series = {}  # the run restarted from scratch after a kill: its earlier lines are void
                 if " step:" not in f" {line}":
                     continue
                 for name in ("loss_obs", "loss_act"):
@@ -570,9 +571,8 @@ def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, l
                     if match:
                         series.setdefault(name, []).append(float(match.group(1)))
             for name, ys in series.items():
-                curves.setdefault(method.name, {}).setdefault(name, []).append(
-                    [freq * (i + 1) for i in range(len(ys))] + ys
-                )
+                steps = [freq * (i + 1) for i in range(len(ys))]
+                curves.setdefault(method.name, {}).setdefault(name, []).append((steps, ys))
     return curves
 
 
@@ -589,11 +589,10 @@ def plot_curves(curves: dict, path: Path, title: str) -> bool:
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, name in zip(axes[0], names, strict=True):
         for i, (method, series) in enumerate(curves.items()):
-            for j, run in enumerate(series.get(name, [])):
-                half = len(run) // 2
+            for j, (steps, values) in enumerate(series.get(name, [])):
                 ax.plot(
-                    run[:half],
-                    run[half:],
+                    steps,
+                    values,
                     color=colours[i % len(colours)],
                     alpha=0.7,
                     label=method if j == 0 else None,

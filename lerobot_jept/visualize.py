@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from lerobot_jept.prompt_probe import ProbeConfig, ProbeError, load_checkpoint, prompt_embeddings, task_names
+from lerobot_jept.prompt_probe import ProbeConfig, ProbeError, load_labelled, prompt_embeddings, task_names
 from lerobot_jept.suite import DatasetArg, PolicyArg
 
 SPLIT_MARKERS = {"demo": "o", "video": "^", "unseen": "s"}
@@ -78,21 +78,6 @@ def split_of(build: dict | None, name: str) -> str:
     return "demo"
 
 
-def load(cfg: VisualizeConfig, path: PolicyArg):
-    """The policy, its preprocessor, and the labelled repo with the policy's frame windows."""
-    from lerobot.datasets.factory import resolve_delta_timestamps
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
-
-    policy, pre = load_checkpoint(ProbeConfig(path, cfg.dataset))
-    meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root)
-    dataset = LeRobotDataset(
-        cfg.dataset.repo_id,
-        root=cfg.dataset.root,
-        delta_timestamps=resolve_delta_timestamps(policy.config, meta),
-    )
-    return policy, pre, dataset
-
-
 def figure3_episodes(cfg: VisualizeConfig, dataset, names: dict[str, str], build: dict | None) -> list[int]:
     """One episode of the chosen (or first) demo, video and unseen task of the repo."""
     by_task: dict[str, int] = {}
@@ -126,7 +111,7 @@ def visualize(cfg: VisualizeConfig) -> dict:
     fig5, axes5 = plt.subplots(1, len(models), figsize=(6.5 * len(models), 5.5), squeeze=False)
     fig3, axes3 = plt.subplots(1, len(models), figsize=(6.5 * len(models), 5.5), squeeze=False)
     for col, (role, path) in enumerate(tqdm(models, desc="models", unit="model")):
-        policy, pre, dataset = load(cfg, path)
+        policy, pre, dataset = load_labelled(ProbeConfig(path, cfg.dataset))
         names = task_names(dataset.meta) or {}
         build_path = Path(dataset.meta.root) / "meta/jept_build.json"
         build = json.loads(build_path.read_text()) if build_path.is_file() else None
