@@ -111,6 +111,12 @@ class JEPTConfig(PreTrainedConfig):
             incompatible version fails with a message naming the version to install.
         cache_frame_tokens: ``select_action`` reuses per-frame tokens of the previous k - 1 frames (off only
             to check the cache against full recomputation).
+        prompt_token_cache: with a frozen backbone, the backbone tokens of each prompt are computed once and
+            reused in every training step and evaluation episode (exact: a frozen backbone never changes them);
+            bank prompts are keyed by bank and episode, other prompts by their content.
+        prompt_cache_dtype: float32 (exact), bfloat16 or float16 (half the memory, rounded tokens).
+        backbone_chunk_size: frames per backbone pass (prompt and observation frames), bounding the activation
+            memory of long prompts.
     """
 
     n_obs_steps: int = 8
@@ -189,12 +195,19 @@ class JEPTConfig(PreTrainedConfig):
     prompt_repo_id: str | None = None
     prompt_root: str | None = None
     cache_frame_tokens: bool = True
+    prompt_token_cache: bool = True
+    prompt_cache_dtype: str = "float32"
+    backbone_chunk_size: int = 64
     drop_n_last_frames: int = 1  # the last frame of an episode has no next observation to predict
     plugin_version: str = field(default_factory=installed_version)
 
     def __post_init__(self):
         super().__post_init__()
         check_plugin_version(self.plugin_version, installed_version())
+        if self.prompt_cache_dtype not in ("float32", "bfloat16", "float16"):
+            raise ValueError(
+                f"prompt_cache_dtype must be float32, bfloat16 or float16, got {self.prompt_cache_dtype!r}."
+            )
         if self.phase_schedule not in PHASE_SCHEDULES:
             raise ValueError(
                 f"phase_schedule must be one of {PHASE_SCHEDULES}, got {self.phase_schedule!r}: "

@@ -23,6 +23,10 @@ from lerobot_jept.discretization import bin_centres
 
 PROMPT_VIDEO = "observation.prompt_video"
 PROMPT_MASK = "observation.prompt_video_mask"
+# (B,) int64 identity of a bank prompt (bank fingerprint and episode), set by the jept_prompt_video step; a prompt
+# given by the caller has none and is identified by its content.
+PROMPT_ID = "observation.prompt_id"
+CACHE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 IGNORE_INDEX = -100  # action labels that take no part in the action loss (unlabelled or padded frames)
 
 
@@ -85,6 +89,14 @@ def make_action_head(config: JEPTConfig, width: int) -> ActionHead:
     )
 
 
+def content_key(frames: Tensor) -> str:
+    """A digest of a prompt's frames (their exact float bytes): the cache key of a prompt not from a bank."""
+    import hashlib
+
+    data = frames.detach().float().contiguous().cpu().numpy().tobytes()
+    return hashlib.blake2b(data, digest_size=16).hexdigest() + f":{tuple(frames.shape)}"
+
+
 class VisualPolicyNet(nn.Module):
     """Base of the networks. Subclasses set ``backbone`` (a :class:`SpatialBackbone`) and, when they take a
     prompt, ``prompt_encoder``; :meth:`frame_tokens` is how they turn frames into observation tokens."""
@@ -93,16 +105,52 @@ class VisualPolicyNet(nn.Module):
     backbone: SpatialBackbone
 
     def backbone_tokens(self, images: Tensor) -> Tensor:
-        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution."""
+        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution, ``backbone_chunk_size``
+        frames at a time (memory does not grow with the number of frames beyond one chunk's activations)."""
         lead = images.shape[:-3]
         flat = images.reshape(-1, *images.shape[-3:])
-        size = self.config.image_size
-        if flat.shape[-2:] != (size, size):
-            flat = F.interpolate(
-                flat, size=(size, size), mode="bilinear", antialias=True, align_corners=False
-            )
-        tokens = self.backbone(flat)
+        size, chunk = self.config.image_size, max(1, self.config.backbone_chunk_size)
+        out = []
+        for start in range(0, len(flat), chunk):
+            part = flat[start : start + chunk]
+            if part.shape[-2:] != (size, size):
+                part = F.interpolate(
+                    part, size=(size, size), mode="bilinear", antialias=True, align_corners=False
+                )
+            out.append(self.backbone(part))
+        tokens = torch.cat(out) if len(out) > 1 else out[0]
         return tokens.reshape(*lead, *tokens.shape[1:])
+
+    def prompt_backbone_tokens(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
+        """Backbone tokens (B, N, P, C) of prompt frames (B, N, 3, H, W), without gradient.
+
+        The fast path (exact): with a frozen backbone and ``prompt_token_cache``, a prompt's tokens never change,
+        so they are computed once per prompt (bank prompts by ``ids``, others by their content) and kept, in
+        ``prompt_cache_dtype`` on the policy's device; padded frames get zero tokens (the prompt encoder masks
+        them out). Otherwise every frame goes through the backbone, as the reference path."""
+        cfg = self.config
+        with torch.no_grad():
+            if not (cfg.freeze_backbone and cfg.prompt_token_cache):
+                return self.backbone_tokens(video)
+            cache: dict = self.__dict__.setdefault("_prompt_token_cache", {})
+            b, n = video.shape[:2]
+            real = torch.ones(b, n, dtype=torch.bool, device=video.device) if mask is None else mask.bool()
+            keys = []
+            for i in range(b):
+                frames = video[i][real[i]]
+                key = int(ids[i]) if ids is not None and int(ids[i]) >= 0 else None
+                key = ("bank", key, len(frames)) if key is not None else ("content", content_key(frames))
+                if key not in cache:
+                    cache[key] = self.backbone_tokens(frames).to(CACHE_DTYPES[cfg.prompt_cache_dtype])
+                keys.append(key)
+            first = cache[keys[0]]
+            out = video.new_zeros(b, n, *first.shape[1:])
+            for i, key in enumerate(keys):
+                out[i, real[i]] = cache[key].to(out.dtype)
+            return out
+
+    def clear_prompt_cache(self) -> None:
+        self.__dict__.pop("_prompt_token_cache", None)
 
     @staticmethod
     def tokenize(tokenizer: ObservationTokenizer, tokens: Tensor, state: Tensor) -> Tensor:
@@ -115,12 +163,10 @@ class VisualPolicyNet(nn.Module):
         """Frames (B, T, 3, H, W) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
         raise NotImplementedError
 
-    def encode_prompt(self, video: Tensor, mask: Tensor | None) -> Tensor:
+    def encode_prompt(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
         """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D). Only the Perceivers learn from prompts
         (Appendix A.2): the backbone sees them without gradient, even when it is trained on observations."""
-        with torch.no_grad():
-            tokens = self.backbone_tokens(video)
-        return self.prompt_encoder(tokens, mask)
+        return self.prompt_encoder(self.prompt_backbone_tokens(video, mask, ids), mask)
 
 
 class DiscreteActionPolicy(PreTrainedPolicy):
@@ -232,7 +278,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
                 "--policy.prompt_repo_id to a prompt bank (the builder's ORG/NAME_prompts) or pass the prompt "
                 "video as an observation."
             )
-        return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK))
+        return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK), batch.get(PROMPT_ID))
 
     # Hub -------------------------------------------------------------------------------------------------
 
