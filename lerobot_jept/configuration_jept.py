@@ -113,10 +113,16 @@ class JEPTConfig(PreTrainedConfig):
             to check the cache against full recomputation).
         prompt_token_cache: with a frozen backbone, the backbone tokens of each prompt are computed once and
             reused in every training step and evaluation episode (exact: a frozen backbone never changes them);
-            bank prompts are keyed by bank and episode, other prompts by their content.
+            bank prompts are keyed by bank and episode, other prompts by their content. Without gradient and in
+            eval mode, E_prt itself is also kept per batch of prompts until a parameter it depends on changes,
+            so an episode's first control step costs what a later one does.
         prompt_cache_dtype: float32 (exact), bfloat16 or float16 (half the memory, rounded tokens).
+        prompt_cache_max_gib: size bound of the prompt-token cache; the least recently used prompts go first.
         backbone_chunk_size: frames per backbone pass (prompt and observation frames), bounding the activation
             memory of long prompts.
+        prompt_frame_chunk_size, prompt_checkpointing: frames per pass of the prompt's per-frame Perceiver;
+            with more than one chunk in a training step, each chunk's activations are recomputed in the
+            backward pass instead of stored (same gradients, memory independent of batch x prompt length).
     """
 
     n_obs_steps: int = 8
@@ -197,7 +203,10 @@ class JEPTConfig(PreTrainedConfig):
     cache_frame_tokens: bool = True
     prompt_token_cache: bool = True
     prompt_cache_dtype: str = "float32"
+    prompt_cache_max_gib: float = 8.0
     backbone_chunk_size: int = 64
+    prompt_frame_chunk_size: int = 256
+    prompt_checkpointing: bool = True
     drop_n_last_frames: int = 1  # the last frame of an episode has no next observation to predict
     plugin_version: str = field(default_factory=installed_version)
 

@@ -108,3 +108,45 @@ def test_a_trained_backbone_never_uses_the_cache(tiny_build):
 def test_prompt_cache_dtype_is_checked():
     with pytest.raises(ValueError, match="prompt_cache_dtype must be"):
         JEPTConfig.small(prompt_cache_dtype="int8", device="cpu")
+
+
+def test_chunked_checkpointed_prompt_frames_give_the_same_embedding_and_gradients():
+    from lerobot_jept.components.encoders import PromptVideoEncoder
+
+    sizes = dict(num_latents=8, num_queries=2, heads=2, ff_dim=32, dropout=0.0)
+    torch.manual_seed(0)
+    whole = PromptVideoEncoder(24, sizes, sizes, dim=16, max_frames=6, chunk_size=1000)
+    chunked = PromptVideoEncoder(24, sizes, sizes, dim=16, max_frames=6, chunk_size=4, checkpointing=True)
+    chunked.load_state_dict(whole.state_dict())
+    tokens = torch.randn(3, 6, 5, 24)
+    mask = torch.ones(3, 6, dtype=torch.bool)
+    mask[1, 4:] = False
+    outputs = []
+    for encoder in (whole, chunked):
+        encoder.zero_grad()
+        out = encoder(tokens.bfloat16() if encoder is chunked else tokens.bfloat16().float(), mask)
+        out.square().sum().backward()
+        outputs.append((out.detach(), {n: p.grad.clone() for n, p in encoder.named_parameters()}))
+    (ref, ref_grads), (out, grads) = outputs
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6)
+    for name, grad in grads.items():
+        torch.testing.assert_close(grad, ref_grads[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_control_keeps_the_prompt_embedding_until_a_parameter_changes(tiny_build):
+    policy, _, _ = build_policy(tiny_build, freeze_backbone=True)
+    policy.eval()
+    calls = []
+    policy.model.prompt_encoder.register_forward_hook(lambda *args: calls.append(1))
+    video, ids = torch.rand(2, 3, 3, 64, 64), torch.tensor([5, 6])
+    with torch.no_grad():
+        first = policy.model.encode_prompt(video, None, ids)
+        again = policy.model.encode_prompt(video, None, ids)
+        assert len(calls) == 1 and again is first
+        policy.model.prompt_encoder.video_perceiver.queries.add_(1.0)  # what an optimizer step does
+        changed = policy.model.encode_prompt(video, None, ids)
+    assert len(calls) == 2 and not torch.allclose(changed, first)
+    policy.train()
+    with torch.no_grad():
+        policy.model.encode_prompt(video, None, ids)
+    assert len(calls) == 3  # training never reuses an embedding
