@@ -65,10 +65,13 @@ class JEPTConfig(PreTrainedConfig):
             and the next one, whose joint embedding is the last target.
         image_size: the model's input resolution (Table 5 backbone: 224). Frames of another size are resized.
         vision_backbone: timm model name of the spatial encoder (paper: ``vit_base_patch16_224``). Visual prior
-            injection (Section 4.4) is a change of this name.
-        pretrained_backbone: load the backbone's pretrained weights through timm (needs the Hub, or
-            ``backbone_weights_path``).
-        backbone_weights_path: local weights file (timm checkpoint, .safetensors or .pth) for the backbone.
+            injection (Section 4.4) is a change of this name: DINOv2 and SAM are timm names
+            (``vit_base_patch14_dinov2.lvd142m``, ``samvit_base_patch16.sa1b``), ``videomae_small`` /
+            ``videomae_base`` (Hugging Face VideoMAE) and ``raft_small`` / ``raft_large`` (torchvision optical
+            flow) see each frame with the one before it (``components/backbone.py``).
+        pretrained_backbone: load the backbone's pretrained weights (through timm, torchvision or a weights file;
+            needs the Hub, or ``backbone_weights_path``).
+        backbone_weights_path: local weights file (.safetensors or .pth) for the backbone.
         freeze_backbone: keep the backbone fixed (paper: frozen), so the Perceivers act as adaptors.
         perceiver_dim, perceiver_heads, perceiver_encoder_cross_layers, perceiver_encoder_self_layers,
             perceiver_decoder_cross_layers: the Perceiver-IO structure shared by the single-frame and the
