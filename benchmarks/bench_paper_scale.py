@@ -26,6 +26,7 @@ from collections import OrderedDict
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
+from benchmarks.bench_policy import median_time
 from lerobot_jept import JEPTConfig, JEPTPolicy
 from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.policy_base import CACHE_DTYPES
@@ -98,15 +99,6 @@ def fill_prompt_cache(policy: JEPTPolicy, batch: dict) -> None:
         )
 
 
-def median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def prompt_cache_speedup(device: str, repeats: int) -> tuple[float, float, float]:
     times = {}
     for cached in (False, True):
@@ -115,7 +107,9 @@ def prompt_cache_speedup(device: str, repeats: int) -> tuple[float, float, float
         set_phase(policy, "others")
         optimizer = torch.optim.AdamW(policy.get_optim_params())
         train_step(policy, optimizer, batch)  # warm-up (fills the cache when on)
-        times[cached] = median_time(lambda p=policy, o=optimizer, b=batch: train_step(p, o, b), repeats)
+        times[cached] = median_time(
+            lambda p=policy, o=optimizer, b=batch: train_step(p, o, b), repeats, warmup=0
+        )
     return times[False] / times[True], times[False], times[True]
 
 
@@ -170,7 +164,7 @@ def first_step_ratio(device: str, repeats: int) -> tuple[float, float, float]:
         start = time.perf_counter()
         policy.select_action(obs)
         firsts.append(time.perf_counter() - start)
-        laters.append(median_time(lambda: policy.select_action(obs), 3))
+        laters.append(median_time(lambda: policy.select_action(obs), 3, warmup=0))
     first, later = statistics.median(firsts), statistics.median(laters)
     return first / later, first, later
 

@@ -7,30 +7,7 @@ import torch
 from lerobot_jept import JEPTConfig
 from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
 from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK
-from tests.lerobot_jept.test_policy import MIX, PROMPTS, mixed_batch
-
-DETERMINISTIC = dict(
-    device="cpu",
-    image_size=64,
-    max_prompt_length=4,
-    prompt_repo_id=PROMPTS,
-    frame_perceiver_dropout=0.0,
-    prompt_perceiver_dropout=0.0,
-    temporal_dropout=0.0,
-    predictor_dropout=0.0,
-    phase_schedule="joint",
-    prompt_warmup_steps=0,
-)
-
-
-def build_policy(tiny_build, config_cls=JEPTConfig, **overrides):
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-
-    torch.manual_seed(0)
-    cfg = config_cls.small(**{**DETERMINISTIC, **overrides})
-    meta = LeRobotDatasetMetadata(MIX)
-    return make_policy(cfg, ds_meta=meta), *make_pre_post_processors(cfg, dataset_stats=meta.stats)
+from tests.lerobot_jept.test_policy import build_policy, mixed_batch
 
 
 def loss_and_grads(policy, batch):
