@@ -21,7 +21,6 @@ import statistics
 import subprocess
 import sys
 import time
-from collections import OrderedDict
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -87,7 +86,7 @@ def fill_prompt_cache(policy: JEPTPolicy, batch: dict) -> None:
     """Warm the prompt-token cache as a bank prompt's first use would, with random tokens of the right shape
     and dtype (random weights either way): 250-frame prompts through ViT-B on a CPU would take an hour."""
     m, cfg = policy.model, policy.config
-    cache = m.__dict__.setdefault("_prompt_token_cache", OrderedDict())
+    cache = m.prompt_cache()
     n = int(batch[PROMPT_MASK][0].sum())
     for i in batch[PROMPT_ID].tolist():
         cache[("bank", i, n)] = torch.randn(

@@ -99,6 +99,12 @@ def content_key(frames: Tensor) -> str:
     return hashlib.blake2b(data, digest_size=16).hexdigest() + f":{tuple(frames.shape)}"
 
 
+def parameter_versions(modules: list[nn.Module]) -> tuple:
+    """The in-place versions of the modules' parameters and buffers: every optimizer step and every load changes
+    them, so a cache of their outputs keyed by them is never stale."""
+    return tuple(t._version for m in modules for t in (*m.parameters(), *m.buffers()))
+
+
 class VisualPolicyNet(nn.Module):
     """Base of the networks. Subclasses set ``backbone`` (a :class:`SpatialBackbone`) and, when they take a
     prompt, ``prompt_encoder``; :meth:`frame_tokens` is how they turn frames into observation tokens."""
@@ -154,7 +160,7 @@ class VisualPolicyNet(nn.Module):
         with torch.no_grad():
             if not (cfg.freeze_backbone and cfg.prompt_token_cache):
                 return self.backbone_tokens(video)
-            cache: OrderedDict = self.__dict__.setdefault("_prompt_token_cache", OrderedDict())
+            cache = self.prompt_cache()
             b, n = video.shape[:2]
             real = torch.ones(b, n, dtype=torch.bool, device=video.device) if mask is None else mask.bool()
             keys = self.prompt_keys(video, real, ids)
@@ -174,14 +180,18 @@ class VisualPolicyNet(nn.Module):
                 cache.popitem(last=False)
             return out
 
-    def clear_prompt_cache(self) -> None:
-        self.__dict__.pop("_prompt_token_cache", None)
-        self.__dict__.pop("_prompt_embedding_cache", None)
+    def prompt_cache(self) -> OrderedDict:
+        """The prompt-token cache (key -> tokens (N, P, C)), emptied when the backbone's weights have changed
+        since it was filled (a checkpoint loaded into this model)."""
+        versions = parameter_versions([self.backbone])
+        if self.__dict__.get("_prompt_token_versions") != versions:
+            self.__dict__["_prompt_token_cache"] = OrderedDict()
+            self.__dict__["_prompt_token_versions"] = versions
+        return self.__dict__["_prompt_token_cache"]
 
-    def prompt_versions(self) -> tuple:
-        """In-place versions of every parameter E_prt depends on: any optimizer step or load changes them."""
-        modules = [self.prompt_encoder] + ([] if self.config.freeze_backbone else [self.backbone])
-        return tuple(p._version for m in modules for p in m.parameters())
+    def clear_prompt_cache(self) -> None:
+        for name in ("_prompt_token_cache", "_prompt_token_versions", "_prompt_embedding_cache"):
+            self.__dict__.pop(name, None)
 
     @staticmethod
     def tokenize(tokenizer: ObservationTokenizer, tokens: Tensor, state: Tensor) -> Tensor:
@@ -206,7 +216,10 @@ class VisualPolicyNet(nn.Module):
             if mask is None
             else mask.bool()
         )
-        key = (tuple(self.prompt_keys(video, real, ids)), self.prompt_versions())
+        key = (
+            tuple(self.prompt_keys(video, real, ids)),
+            parameter_versions([self.prompt_encoder, self.backbone]),
+        )
         cached = self.__dict__.get("_prompt_embedding_cache")
         if cached is None or cached[0] != key:
             cached = (key, self.prompt_encoder(self.prompt_backbone_tokens(video, mask, ids), mask))

@@ -70,6 +70,12 @@ def test_a_given_prompt_is_cached_by_its_content(tiny_build):
     with torch.no_grad():
         policy.model.encode_prompt(video, None)
     assert seen == [3, 3, 3, 3]
+    with torch.no_grad():  # other backbone weights loaded: the cached tokens are not theirs
+        policy.model.backbone.load_state_dict(
+            {k: v + 0.01 for k, v in policy.model.backbone.state_dict().items()}
+        )
+        policy.model.encode_prompt(video, None)
+    assert seen == [3, 3, 3, 3, 3, 3]
 
 
 def test_a_trained_backbone_never_uses_the_cache(tiny_build):
