@@ -65,10 +65,13 @@ class JEPTConfig(PreTrainedConfig):
             and the next one, whose joint embedding is the last target.
         image_size: the model's input resolution (Table 5 backbone: 224). Frames of another size are resized.
         vision_backbone: timm model name of the spatial encoder (paper: ``vit_base_patch16_224``). Visual prior
-            injection (Section 4.4) is a change of this name.
-        pretrained_backbone: load the backbone's pretrained weights through timm (needs the Hub, or
-            ``backbone_weights_path``).
-        backbone_weights_path: local weights file (timm checkpoint, .safetensors or .pth) for the backbone.
+            injection (Section 4.4) is a change of this name: DINOv2 and SAM are timm names
+            (``vit_base_patch14_dinov2.lvd142m``, ``samvit_base_patch16.sa1b``), ``videomae_small`` /
+            ``videomae_base`` (Hugging Face VideoMAE) and ``raft_small`` / ``raft_large`` (torchvision optical
+            flow) see each frame with the one before it (``components/backbone.py``).
+        pretrained_backbone: load the backbone's pretrained weights (through timm, torchvision or a weights file;
+            needs the Hub, or ``backbone_weights_path``).
+        backbone_weights_path: local weights file (.safetensors or .pth) for the backbone.
         freeze_backbone: keep the backbone fixed (paper: frozen), so the Perceivers act as adaptors.
         perceiver_dim, perceiver_heads, perceiver_encoder_cross_layers, perceiver_encoder_self_layers,
             perceiver_decoder_cross_layers: the Perceiver-IO structure shared by the single-frame and the
@@ -111,6 +114,18 @@ class JEPTConfig(PreTrainedConfig):
             incompatible version fails with a message naming the version to install.
         cache_frame_tokens: ``select_action`` reuses per-frame tokens of the previous k - 1 frames (off only
             to check the cache against full recomputation).
+        prompt_token_cache: with a frozen backbone, the backbone tokens of each prompt are computed once and
+            reused in every training step and evaluation episode (exact: a frozen backbone never changes them);
+            bank prompts are keyed by bank and episode, other prompts by their content. Without gradient and in
+            eval mode, E_prt itself is also kept per batch of prompts until a parameter it depends on changes,
+            so an episode's first control step costs what a later one does.
+        prompt_cache_dtype: float32 (exact), bfloat16 or float16 (half the memory, rounded tokens).
+        prompt_cache_max_gib: size bound of the prompt-token cache; the least recently used prompts go first.
+        backbone_chunk_size: frames per backbone pass (prompt and observation frames), bounding the activation
+            memory of long prompts.
+        prompt_frame_chunk_size, prompt_checkpointing: frames per pass of the prompt's per-frame Perceiver;
+            with more than one chunk in a training step, each chunk's activations are recomputed in the
+            backward pass instead of stored (same gradients, memory independent of batch x prompt length).
     """
 
     n_obs_steps: int = 8
@@ -189,12 +204,22 @@ class JEPTConfig(PreTrainedConfig):
     prompt_repo_id: str | None = None
     prompt_root: str | None = None
     cache_frame_tokens: bool = True
+    prompt_token_cache: bool = True
+    prompt_cache_dtype: str = "float32"
+    prompt_cache_max_gib: float = 8.0
+    backbone_chunk_size: int = 64
+    prompt_frame_chunk_size: int = 256
+    prompt_checkpointing: bool = True
     drop_n_last_frames: int = 1  # the last frame of an episode has no next observation to predict
     plugin_version: str = field(default_factory=installed_version)
 
     def __post_init__(self):
         super().__post_init__()
         check_plugin_version(self.plugin_version, installed_version())
+        if self.prompt_cache_dtype not in ("float32", "bfloat16", "float16"):
+            raise ValueError(
+                f"prompt_cache_dtype must be float32, bfloat16 or float16, got {self.prompt_cache_dtype!r}."
+            )
         if self.phase_schedule not in PHASE_SCHEDULES:
             raise ValueError(
                 f"phase_schedule must be one of {PHASE_SCHEDULES}, got {self.phase_schedule!r}: "

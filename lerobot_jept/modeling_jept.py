@@ -24,6 +24,7 @@ from lerobot_jept.components.predictor import CausalPredictor, ObservationHead
 from lerobot_jept.configuration_jept import JEPTConfig
 from lerobot_jept.policy_base import (
     IGNORE_INDEX,
+    PROMPT_ID,
     PROMPT_MASK,
     PROMPT_VIDEO,
     DiscreteActionPolicy,
@@ -36,7 +37,7 @@ from lerobot_jept.policy_base import (
     transformer_kwargs,
 )
 
-__all__ = ["IGNORE_INDEX", "PROMPT_MASK", "PROMPT_VIDEO", "JEPT", "JEPTPolicy"]
+__all__ = ["IGNORE_INDEX", "PROMPT_ID", "PROMPT_MASK", "PROMPT_VIDEO", "JEPT", "JEPTPolicy"]
 
 
 class JointEmbeddingTarget(nn.Module):

@@ -17,6 +17,7 @@ from lerobot_jept.components.attention import CrossAttentionBlock, StepPositions
 from lerobot_jept.components.token_groups import DT_STAR_RULES, attention_mask, dt_star_groups
 from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
 from lerobot_jept.policy_base import (
+    PROMPT_ID,
     PROMPT_MASK,
     PROMPT_VIDEO,
     ContextActionPolicy,
@@ -93,10 +94,11 @@ class Vid2Robot(VisualPolicyNet):
     def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
         return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
 
-    def encode_prompt_frames(self, video: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    def encode_prompt_frames(
+        self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """(B, N, 3, H, W) -> prompt tokens (B, N_prt, D) and per-frame embeddings (B, N, D)."""
-        with torch.no_grad():
-            tokens = self.backbone_tokens(video)
+        tokens = self.prompt_backbone_tokens(video, mask, ids)
         return self.prompt_encoder(tokens, mask), self.prompt_encoder.encode_frames(tokens).mean(2)
 
     def action_logits(self, prompt: Tensor, obs: Tensor) -> Tensor:
@@ -127,7 +129,7 @@ class Vid2RobotPolicy(ContextActionPolicy):
         if PROMPT_VIDEO not in batch:
             self.prompt(batch)  # raises the clear error
         prompt_mask = batch.get(PROMPT_MASK)
-        prompt, prompt_frames = m.encode_prompt_frames(batch[PROMPT_VIDEO], prompt_mask)
+        prompt, prompt_frames = m.encode_prompt_frames(batch[PROMPT_VIDEO], prompt_mask, batch.get(PROMPT_ID))
         task_ids = self.task_ids(batch, obs.shape[0], obs.device)
         contrastive = m.contrastive(prompt, obs, task_ids, cfg.aux_temperature)
         pad = batch.get(f"{cfg.image_key}_is_pad")

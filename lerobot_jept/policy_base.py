@@ -5,7 +5,7 @@ the masked action loss, the prompt lookup, the per-frame token cache of control 
 """
 
 import json
-from collections import deque
+from collections import OrderedDict, deque
 from pathlib import Path
 
 import torch
@@ -23,6 +23,10 @@ from lerobot_jept.discretization import bin_centres
 
 PROMPT_VIDEO = "observation.prompt_video"
 PROMPT_MASK = "observation.prompt_video_mask"
+# (B,) int64 identity of a bank prompt (bank fingerprint and episode), set by the jept_prompt_video step; a prompt
+# given by the caller has none and is identified by its content.
+PROMPT_ID = "observation.prompt_id"
+CACHE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 IGNORE_INDEX = -100  # action labels that take no part in the action loss (unlabelled or padded frames)
 
 
@@ -70,6 +74,8 @@ def make_prompt_encoder(config: JEPTConfig, backbone_dim: int) -> PromptVideoEnc
         video_perceiver=perceiver_kwargs(config, "prompt"),
         dim=config.perceiver_dim,
         max_frames=config.max_prompt_length,
+        chunk_size=config.prompt_frame_chunk_size,
+        checkpointing=config.prompt_checkpointing,
     )
 
 
@@ -85,6 +91,20 @@ def make_action_head(config: JEPTConfig, width: int) -> ActionHead:
     )
 
 
+def content_key(frames: Tensor) -> str:
+    """A digest of a prompt's frames (their exact float bytes): the cache key of a prompt not from a bank."""
+    import hashlib
+
+    data = frames.detach().float().contiguous().cpu().numpy().tobytes()
+    return hashlib.blake2b(data, digest_size=16).hexdigest() + f":{tuple(frames.shape)}"
+
+
+def parameter_versions(modules: list[nn.Module]) -> tuple:
+    """The in-place versions of the modules' parameters and buffers: every optimizer step and every load changes
+    them, so a cache of their outputs keyed by them is never stale."""
+    return tuple(t._version for m in modules for t in (*m.parameters(), *m.buffers()))
+
+
 class VisualPolicyNet(nn.Module):
     """Base of the networks. Subclasses set ``backbone`` (a :class:`SpatialBackbone`) and, when they take a
     prompt, ``prompt_encoder``; :meth:`frame_tokens` is how they turn frames into observation tokens."""
@@ -93,16 +113,85 @@ class VisualPolicyNet(nn.Module):
     backbone: SpatialBackbone
 
     def backbone_tokens(self, images: Tensor) -> Tensor:
-        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution."""
+        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution, ``backbone_chunk_size``
+        frames at a time (memory does not grow with the number of frames beyond one chunk's activations).
+
+        A temporal prior (optical flow, VideoMAE) pairs each frame with the one before it along the last leading
+        axis (time: (B, T, ...) windows, (N, ...) prompt frames); the first frame is paired with itself."""
         lead = images.shape[:-3]
         flat = images.reshape(-1, *images.shape[-3:])
-        size = self.config.image_size
-        if flat.shape[-2:] != (size, size):
-            flat = F.interpolate(
-                flat, size=(size, size), mode="bilinear", antialias=True, align_corners=False
-            )
-        tokens = self.backbone(flat)
+        before = None
+        if self.backbone.temporal:
+            before = torch.cat([images[..., :1, :, :, :], images[..., :-1, :, :, :]], dim=-4)
+            before = before.reshape(flat.shape)
+        size, chunk = self.config.image_size, max(1, self.config.backbone_chunk_size)
+        out = []
+        for start in range(0, len(flat), chunk):
+            parts = [x[start : start + chunk] for x in (flat, before) if x is not None]
+            if parts[0].shape[-2:] != (size, size):
+                parts = [
+                    F.interpolate(x, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+                    for x in parts
+                ]
+            out.append(self.backbone(*parts))
+        tokens = torch.cat(out) if len(out) > 1 else out[0]
         return tokens.reshape(*lead, *tokens.shape[1:])
+
+    def prompt_keys(self, video: Tensor, real: Tensor, ids: Tensor | None) -> list[tuple]:
+        """The cache key of each prompt of a batch: a bank prompt by its id and length, another by content."""
+        keys = []
+        for i in range(video.shape[0]):
+            if ids is not None and int(ids[i]) >= 0:
+                keys.append(("bank", int(ids[i]), int(real[i].sum())))
+            else:
+                keys.append(("content", content_key(video[i][real[i]])))
+        return keys
+
+    def prompt_backbone_tokens(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
+        """Backbone tokens (B, N, P, C) of prompt frames (B, N, 3, H, W), without gradient.
+
+        The fast path (exact): with a frozen backbone and ``prompt_token_cache``, a prompt's tokens never change,
+        so they are computed once per prompt (bank prompts by ``ids``, others by their content) and kept, in
+        ``prompt_cache_dtype`` on the policy's device, the least recently used dropped past
+        ``prompt_cache_max_gib``; the batch comes back in that dtype (the prompt encoder casts chunk by chunk)
+        and padded frames get zero tokens (the prompt encoder masks them out). Otherwise every frame goes
+        through the backbone, as the reference path."""
+        cfg = self.config
+        with torch.no_grad():
+            if not (cfg.freeze_backbone and cfg.prompt_token_cache):
+                return self.backbone_tokens(video)
+            cache = self.prompt_cache()
+            b, n = video.shape[:2]
+            real = torch.ones(b, n, dtype=torch.bool, device=video.device) if mask is None else mask.bool()
+            keys = self.prompt_keys(video, real, ids)
+            for i, key in enumerate(keys):
+                if key in cache:
+                    cache.move_to_end(key)
+                else:
+                    cache[key] = self.backbone_tokens(video[i][real[i]]).to(
+                        CACHE_DTYPES[cfg.prompt_cache_dtype]
+                    )
+            first = cache[keys[0]]
+            out = first.new_zeros(b, n, *first.shape[1:])
+            for i, key in enumerate(keys):
+                out[i, real[i]] = cache[key]
+            limit = cfg.prompt_cache_max_gib * 2**30
+            while len(cache) > b and sum(t.numel() * t.element_size() for t in cache.values()) > limit:
+                cache.popitem(last=False)
+            return out
+
+    def prompt_cache(self) -> OrderedDict:
+        """The prompt-token cache (key -> tokens (N, P, C)), emptied when the backbone's weights have changed
+        since it was filled (a checkpoint loaded into this model)."""
+        versions = parameter_versions([self.backbone])
+        if self.__dict__.get("_prompt_token_versions") != versions:
+            self.__dict__["_prompt_token_cache"] = OrderedDict()
+            self.__dict__["_prompt_token_versions"] = versions
+        return self.__dict__["_prompt_token_cache"]
+
+    def clear_prompt_cache(self) -> None:
+        for name in ("_prompt_token_cache", "_prompt_token_versions", "_prompt_embedding_cache"):
+            self.__dict__.pop(name, None)
 
     @staticmethod
     def tokenize(tokenizer: ObservationTokenizer, tokens: Tensor, state: Tensor) -> Tensor:
@@ -115,12 +204,27 @@ class VisualPolicyNet(nn.Module):
         """Frames (B, T, 3, H, W) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
         raise NotImplementedError
 
-    def encode_prompt(self, video: Tensor, mask: Tensor | None) -> Tensor:
+    def encode_prompt(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
         """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D). Only the Perceivers learn from prompts
         (Appendix A.2): the backbone sees them without gradient, even when it is trained on observations."""
-        with torch.no_grad():
-            tokens = self.backbone_tokens(video)
-        return self.prompt_encoder(tokens, mask)
+        cfg = self.config
+        if not (cfg.prompt_token_cache and not self.training and not torch.is_grad_enabled()):
+            return self.prompt_encoder(self.prompt_backbone_tokens(video, mask, ids), mask)
+        # control repeats the same prompts every episode: keep E_prt while the parameters stay the same (exact)
+        real = (
+            torch.ones(video.shape[:2], dtype=torch.bool, device=video.device)
+            if mask is None
+            else mask.bool()
+        )
+        key = (
+            tuple(self.prompt_keys(video, real, ids)),
+            parameter_versions([self.prompt_encoder, self.backbone]),
+        )
+        cached = self.__dict__.get("_prompt_embedding_cache")
+        if cached is None or cached[0] != key:
+            cached = (key, self.prompt_encoder(self.prompt_backbone_tokens(video, mask, ids), mask))
+            self.__dict__["_prompt_embedding_cache"] = cached
+        return cached[1]
 
 
 class DiscreteActionPolicy(PreTrainedPolicy):
@@ -232,7 +336,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
                 "--policy.prompt_repo_id to a prompt bank (the builder's ORG/NAME_prompts) or pass the prompt "
                 "video as an observation."
             )
-        return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK))
+        return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK), batch.get(PROMPT_ID))
 
     # Hub -------------------------------------------------------------------------------------------------
 
@@ -311,7 +415,14 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         frame is encoded; otherwise the whole context is, every step (the reference)."""
         m, k = self.model, self.config.n_obs_steps
         if self.config.cache_frame_tokens:
-            new = m.frame_tokens(image[:, None], state[:, None])[:, 0]
+            if m.backbone.temporal and self._frames:  # a temporal prior pairs the new frame with the last
+                last_image, last_state = self._frames[-1]
+                new = m.frame_tokens(
+                    torch.stack([last_image, image], 1), torch.stack([last_state, state], 1)
+                )[:, 1]
+            else:
+                new = m.frame_tokens(image[:, None], state[:, None])[:, 0]
+            self._frames.append((image, state))
             self._obs_tokens.extend([new] * (k - len(self._obs_tokens)) if not self._obs_tokens else [new])
             return torch.stack(list(self._obs_tokens), dim=1)
         self._frames.extend([(image, state)] * (k if not self._frames else 1))

@@ -7,6 +7,7 @@ checkpoint (``get_config``).
 """
 
 import logging
+import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,7 +24,7 @@ from torch import Tensor
 
 from lerobot_jept.configuration_jept import JEPTConfig
 from lerobot_jept.envs.spec import ACTION_LABELLED
-from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_MASK, PROMPT_VIDEO
+from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.prompts import PromptBank, resize_frames, subsample_indices
 
 
@@ -111,6 +112,7 @@ class JeptPromptVideoStep(ProcessorStep):
     def __call__(self, transition):
         observation = dict(transition.get(TransitionKey.OBSERVATION) or {})
         if PROMPT_VIDEO in observation:
+            observation.pop(PROMPT_ID, None)  # a caller's prompt is identified by its content
             n = observation[PROMPT_VIDEO].shape[-4]
             observation[PROMPT_VIDEO] = self._as_given(observation[PROMPT_VIDEO])
             if PROMPT_MASK in observation and n > self.max_frames:
@@ -137,11 +139,18 @@ class JeptPromptVideoStep(ProcessorStep):
                 episodes.append(candidates[pick])
             if training or self._last is None or self._last[0] != episodes:
                 # inference repeats the same prompts every control step: build that batch once
-                self._last = (episodes, self.bank.batch(episodes))
-            observation[PROMPT_VIDEO], observation[PROMPT_MASK] = self._last[1]
+                ids = torch.tensor([self.prompt_id(ep) for ep in episodes], dtype=torch.long)
+                self._last = (episodes, (*self.bank.batch(episodes), ids))
+            observation[PROMPT_VIDEO], observation[PROMPT_MASK], observation[PROMPT_ID] = self._last[1]
         new = dict(transition)
         new[TransitionKey.OBSERVATION] = observation
         return new
+
+    def prompt_id(self, episode: int) -> int:
+        """The identity of a bank prompt for the policy's prompt-token cache: this bank (repo, root, frames,
+        size) and the episode."""
+        bank = zlib.crc32(f"{self.repo_id}|{self.root}|{self.max_frames}|{self.image_size}".encode())
+        return (bank << 24) | episode
 
     def _as_given(self, video: Tensor) -> Tensor:
         if video.ndim == 4:

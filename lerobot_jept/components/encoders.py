@@ -12,6 +12,7 @@
 import torch
 from einops import rearrange
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 
 from lerobot_jept.components.attention import SelfAttentionStack, StepPositions, sinusoidal_positions
 from lerobot_jept.components.perceiver import PerceiverIO
@@ -82,20 +83,43 @@ class JointEmbeddingEncoder(nn.Module):
 
 
 class PromptVideoEncoder(nn.Module):
-    """Backbone tokens of N prompt frames (B, N, P, C) -> E_prt (B, N_prt, D)."""
+    """Backbone tokens of N prompt frames (B, N, P, C) -> E_prt (B, N_prt, D).
+
+    The per-frame Perceiver runs ``chunk_size`` frames at a time; when a batch holds more than one chunk and
+    gradients are on, each chunk's activations are recomputed in the backward pass (activation checkpointing)
+    instead of kept, so training memory grows with B x N only through the per-frame outputs (B, N, Q, D).
+    """
 
     def __init__(
-        self, backbone_dim: int, frame_perceiver: dict, video_perceiver: dict, dim: int, max_frames: int
+        self,
+        backbone_dim: int,
+        frame_perceiver: dict,
+        video_perceiver: dict,
+        dim: int,
+        max_frames: int,
+        chunk_size: int = 256,
+        checkpointing: bool = True,
     ):
         super().__init__()
         self.frame_perceiver = PerceiverIO(backbone_dim, dim=dim, **frame_perceiver)
         self.register_buffer("frame_pos", sinusoidal_positions(max_frames, dim)[:, None], persistent=False)
         self.video_perceiver = PerceiverIO(dim, dim=dim, **video_perceiver)
+        self.chunk_size, self.checkpointing = max(1, chunk_size), checkpointing
+
+    def _frames(self, tokens: Tensor) -> Tensor:
+        return self.frame_perceiver(tokens.to(self.frame_perceiver.latents.dtype))
 
     def encode_frames(self, frame_tokens: Tensor) -> Tensor:
-        """(B, N, P, C) -> per-frame tokens (B, N, Q, D)."""
+        """(B, N, P, C) -> per-frame tokens (B, N, Q, D); the tokens may be in a cache dtype (bfloat16)."""
         b = frame_tokens.shape[0]
-        per_frame = self.frame_perceiver(rearrange(frame_tokens, "b n p c -> (b n) p c"))
+        flat = rearrange(frame_tokens, "b n p c -> (b n) p c")
+        chunks = flat.split(self.chunk_size)
+        recompute = self.checkpointing and len(chunks) > 1 and torch.is_grad_enabled()
+        out = [
+            checkpoint(self._frames, part, use_reentrant=False) if recompute else self._frames(part)
+            for part in chunks
+        ]
+        per_frame = torch.cat(out) if len(out) > 1 else out[0]
         return rearrange(per_frame, "(b n) q d -> b n q d", b=b)
 
     def forward(self, frame_tokens: Tensor, frame_mask: Tensor | None = None) -> Tensor:

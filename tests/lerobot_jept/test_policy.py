@@ -19,7 +19,7 @@ from tests.conftest import load
 MIX, PROMPTS = "test/mw_tiny_mix", "test/mw_tiny_prompts"
 
 
-def tiny_config(**overrides) -> JEPTConfig:
+def tiny_config(config_cls=JEPTConfig, **overrides) -> JEPTConfig:
     """The small CPU configuration at the tiny build's 64 px, without dropout so outputs are deterministic."""
     fields = dict(
         device="cpu",
@@ -33,14 +33,14 @@ def tiny_config(**overrides) -> JEPTConfig:
         phase_schedule="joint",
         prompt_warmup_steps=0,
     )
-    return JEPTConfig.small(**{**fields, **overrides})
+    return config_cls.small(**{**fields, **overrides})
 
 
-def build_policy(tiny_build, **overrides):
+def build_policy(tiny_build, config_cls=JEPTConfig, **overrides):
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     torch.manual_seed(0)
-    cfg = tiny_config(**overrides)
+    cfg = tiny_config(config_cls, **overrides)
     meta = LeRobotDatasetMetadata(MIX)
     policy = make_policy(cfg, ds_meta=meta)
     pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)

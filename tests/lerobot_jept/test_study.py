@@ -267,7 +267,9 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
     assert "lerobot-train" not in rerun.stdout + rerun.stderr
 
 
-@pytest.mark.parametrize("name", ["cpu_small", "paper_metaworld", "paper_table2", "paper_robosuite"])
+@pytest.mark.parametrize(
+    "name", ["cpu_small", "paper_metaworld", "paper_table2", "paper_robosuite", "paper_table4"]
+)
 def test_shipped_study_files_parse_and_plan(name, monkeypatch):
     import draccus
 
@@ -288,6 +290,14 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         assert {"demo": split.demo_tasks, "video": split.video_tasks, "unseen": split.unseen_tasks} == {
             k: list(v) for k, v in PAPER_SPLIT.items()
         }
+    if name == "paper_table4":
+        from lerobot_jept.components.backbone import RAFT_MODELS, VIDEOMAE_SIZES
+
+        backbones = [a.split("=", 1)[1] for m in cfg.methods for a in m.args if "vision_backbone=" in a]
+        assert backbones[0] in RAFT_MODELS and backbones[1] in VIDEOMAE_SIZES
+        assert "dinov2" in backbones[2] and "samvit" in backbones[3]
+        train = next(s for s in trains if "RAFT" in s.key)
+        assert any(a.startswith("--policy.backbone_weights_path=weights/raft_large") for a in train.command)
     if name == "paper_table2":
         assert [len(s.video_tasks) for s in cfg.splits] == [0, 2, 4, 6]
         assert cfg.splits[1].video_tasks == ["button-press-topdown-wall-v3", "door-open-v3"]  # Appendix B.2

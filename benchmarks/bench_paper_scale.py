@@ -1,0 +1,201 @@
+"""The paper configuration at scale: the frozen-backbone fast path, each figure measured in this run.
+
+Default ``JEPTConfig()`` (frozen ``vit_base_patch16_224`` at 224 px, k = 8, Table 5 sizes) with random weights,
+on synthetic batches shaped like the preprocessor's output (bank prompts carry their ``observation.prompt_id``).
+
+- ``paper_train_step_prompt_cache_speedup``: one training step (forward, backward, AdamW) without / with the
+  cached prompt tokens (``prompt_token_cache``), batch 2, 64-frame prompts; the cache warm (as after each bank
+  prompt's first use). Goal >= 5.
+- ``paper_train_peak_gib_b32_p250``: peak memory of one training step at batch 32 with 250-frame prompts in
+  each of Algorithm 1's two phases (the encoder, then the others), cache warm in bfloat16, measured in a child
+  process (CUDA: ``max_memory_allocated``; CPU: the process's peak resident memory, model and batch included)
+  so the bench survives a failure and prints the figure reached. Goal <= 24 (the paper's RTX 3090).
+- ``select_action_first_step_vs_later``: the first control step of an episode whose 250-frame bank prompt was
+  seen before / a later step of the same episode. Goal <= 2.
+"""
+
+import argparse
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+
+from benchmarks.bench_policy import median_time
+from lerobot_jept import JEPTConfig, JEPTPolicy
+from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
+from lerobot_jept.policy_base import CACHE_DTYPES
+
+IMAGE, STATE, SIZE = "observation.image", "observation.state", 224
+FEATURES = {
+    IMAGE: PolicyFeature(FeatureType.VISUAL, (3, SIZE, SIZE)),
+    STATE: PolicyFeature(FeatureType.STATE, (18,)),
+}
+
+
+def paper_policy(device: str, **overrides) -> JEPTPolicy:
+    torch.manual_seed(0)
+    cfg = JEPTConfig(
+        device=device,
+        pretrained_backbone=False,
+        input_features=FEATURES,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
+        **overrides,
+    )
+    return JEPTPolicy(cfg).to(device)
+
+
+def paper_batch(cfg: JEPTConfig, batch_size: int, prompt_frames: int, device: str) -> dict:
+    """A preprocessed training batch: k + 1 frames, bin labels, one bank prompt per sample."""
+    t = cfg.n_obs_steps + 1
+    return {
+        IMAGE: torch.rand(batch_size, t, 3, SIZE, SIZE, device=device),
+        f"{IMAGE}_is_pad": torch.zeros(batch_size, t, dtype=torch.bool, device=device),
+        STATE: torch.randn(batch_size, t, 18, device=device),
+        "action": torch.randint(0, cfg.num_action_bins, (batch_size, t, 4), device=device),
+        "action_is_pad": torch.zeros(batch_size, t, dtype=torch.bool, device=device),
+        "task_index": torch.arange(batch_size, device=device) % 4,
+        PROMPT_VIDEO: torch.rand(batch_size, prompt_frames, 3, SIZE, SIZE, device=device),
+        PROMPT_MASK: torch.ones(batch_size, prompt_frames, dtype=torch.bool, device=device),
+        PROMPT_ID: torch.arange(batch_size, device=device),
+    }
+
+
+def set_phase(policy: JEPTPolicy, phase: str) -> None:
+    """Past the prompt warm-up, in Algorithm 1's ``encoder`` or ``others`` phase."""
+    steps = policy.config.phase_steps
+    n = policy.config.prompt_warmup_steps
+    if (n // steps) % 2 != ("encoder", "others").index(phase):
+        n = (n // steps + 1) * steps
+    policy.num_updates.fill_(n)
+    assert policy.phase == phase and policy.prompt_active
+
+
+def train_step(policy: JEPTPolicy, optimizer, batch: dict) -> None:
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+
+
+def fill_prompt_cache(policy: JEPTPolicy, batch: dict) -> None:
+    """Warm the prompt-token cache as a bank prompt's first use would, with random tokens of the right shape
+    and dtype (random weights either way): 250-frame prompts through ViT-B on a CPU would take an hour."""
+    m, cfg = policy.model, policy.config
+    cache = m.prompt_cache()
+    n = int(batch[PROMPT_MASK][0].sum())
+    for i in batch[PROMPT_ID].tolist():
+        cache[("bank", i, n)] = torch.randn(
+            n,
+            m.backbone.num_tokens,
+            m.backbone.dim,
+            dtype=CACHE_DTYPES[cfg.prompt_cache_dtype],
+            device=batch[PROMPT_ID].device,
+        )
+
+
+def prompt_cache_speedup(device: str, repeats: int) -> tuple[float, float, float]:
+    times = {}
+    for cached in (False, True):
+        policy = paper_policy(device, prompt_token_cache=cached).train()
+        batch = paper_batch(policy.config, 2, 64, device)
+        set_phase(policy, "others")
+        optimizer = torch.optim.AdamW(policy.get_optim_params())
+        train_step(policy, optimizer, batch)  # warm-up (fills the cache when on)
+        times[cached] = median_time(
+            lambda p=policy, o=optimizer, b=batch: train_step(p, o, b), repeats, warmup=0
+        )
+    return times[False] / times[True], times[False], times[True]
+
+
+def peak_child(device: str, batch_size: int, prompt_frames: int) -> None:
+    """One training step per phase; prints the peak after each (the parent keeps the last line it got)."""
+    policy = paper_policy(device, prompt_cache_dtype="bfloat16").train()
+    batch = paper_batch(policy.config, batch_size, prompt_frames, device)
+    fill_prompt_cache(policy, batch)
+    optimizer = torch.optim.AdamW(policy.get_optim_params())
+    for phase in ("encoder", "others"):
+        set_phase(policy, phase)
+        train_step(policy, optimizer, batch)
+        if device == "cuda":
+            peak = torch.cuda.max_memory_allocated() / 2**30
+        else:
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+        print(f"peak_gib {phase} {peak:.2f}", flush=True)
+
+
+def peak_memory(device: str, batch_size: int, prompt_frames: int, timeout: int) -> tuple[float | None, str]:
+    cmd = [sys.executable, "-m", "benchmarks.bench_paper_scale", "--child", f"--device={device}"]
+    cmd += [f"--batch_size={batch_size}", f"--prompt_frames={prompt_frames}"]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        out, status = run.stdout, f"exit {run.returncode}"
+    except subprocess.TimeoutExpired as err:
+        out = err.stdout.decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
+        status = "timeout"
+    peaks = [line.split() for line in out.splitlines() if line.startswith("peak_gib ")]
+    if not peaks:
+        return None, status
+    phases = ",".join(p[1] for p in peaks)
+    return max(float(p[2]) for p in peaks), f"{status}, phases reached: {phases}"
+
+
+def first_step_ratio(device: str, repeats: int) -> tuple[float, float, float]:
+    policy = paper_policy(device).eval()
+    cfg = policy.config
+    prompt = torch.rand(1, cfg.max_prompt_length, 3, SIZE, SIZE, device=device)
+    obs = {
+        IMAGE: torch.rand(1, 3, SIZE, SIZE, device=device),
+        STATE: torch.randn(1, 18, device=device),
+        PROMPT_VIDEO: prompt,
+        PROMPT_MASK: torch.ones(1, cfg.max_prompt_length, dtype=torch.bool, device=device),
+        PROMPT_ID: torch.tensor([0], device=device),
+    }
+    policy.reset()
+    policy.select_action(obs)  # the bank prompt's first use: its tokens and E_prt are computed here
+    firsts, laters = [], []
+    for _ in range(repeats):
+        policy.reset()
+        start = time.perf_counter()
+        policy.select_action(obs)
+        firsts.append(time.perf_counter() - start)
+        laters.append(median_time(lambda: policy.select_action(obs), 3, warmup=0))
+    first, later = statistics.median(firsts), statistics.median(laters)
+    return first / later, first, later
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--batch_size", type=int, default=32)
+    parser.add_argument("--prompt_frames", type=int, default=250)
+    parser.add_argument("--peak_timeout", type=int, default=1800)
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    torch.set_num_threads(os.cpu_count() or 1)
+    if args.child:
+        peak_child(args.device, args.batch_size, args.prompt_frames)
+        return
+
+    speedup, without_s, with_s = prompt_cache_speedup(args.device, args.repeats)
+    print(f"paper_train_step_uncached_s: {without_s:.2f}")
+    print(f"paper_train_step_cached_s: {with_s:.2f}")
+    print(f"paper_train_step_prompt_cache_speedup: {speedup:.2f}")
+    ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
+    print(f"select_action_first_step_s: {first:.3f}")
+    print(f"select_action_later_step_s: {later:.3f}")
+    print(f"select_action_first_step_vs_later: {ratio:.2f}")
+    peak, status = peak_memory(args.device, args.batch_size, args.prompt_frames, args.peak_timeout)
+    name = f"paper_train_peak_gib_b{args.batch_size}_p{args.prompt_frames}"
+    print(f"{name}: {'failed' if peak is None else f'{peak:.2f}'} ({args.device}, {status})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""The frozen-backbone fast path: prompt tokens computed once per prompt give the reference path's loss and
+gradients exactly, and the backbone no longer sees a cached prompt."""
+
+import pytest
+import torch
+
+from lerobot_jept import JEPTConfig
+from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
+from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK
+from tests.lerobot_jept.test_policy import build_policy, mixed_batch
+
+
+def loss_and_grads(policy, batch):
+    policy.zero_grad()
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    return loss.detach(), {n: p.grad.clone() for n, p in policy.named_parameters() if p.grad is not None}
+
+
+def count_backbone_frames(policy) -> list[int]:
+    seen = []
+    policy.model.backbone.register_forward_hook(lambda module, args, out: seen.append(args[0].shape[0]))
+    return seen
+
+
+@pytest.mark.parametrize("policy_type", ["jept", "vid2robot"])
+def test_cached_prompt_tokens_give_the_reference_loss_and_gradients(tiny_build, policy_type):
+    overrides = dict(freeze_backbone=True, backbone_chunk_size=5)
+    overrides["config_cls"] = Vid2RobotConfig if policy_type == "vid2robot" else JEPTConfig
+    reference, pre, _ = build_policy(tiny_build, prompt_token_cache=False, **overrides)
+    fast, _, _ = build_policy(tiny_build, prompt_token_cache=True, **overrides)
+    fast.load_state_dict(reference.state_dict())
+    torch.manual_seed(0)
+    batch = pre(mixed_batch(reference.config, size=6))
+    assert PROMPT_ID in batch and (batch[PROMPT_ID] >= 0).all()
+    reference.train(), fast.train()
+
+    torch.manual_seed(1)
+    loss_ref, grads_ref = loss_and_grads(reference, batch)
+    seen = count_backbone_frames(fast)
+    frames_per_pass = []
+    for _ in range(2):  # cold (fills the cache), then warm
+        before = sum(seen)
+        torch.manual_seed(1)
+        loss, grads = loss_and_grads(fast, batch)
+        frames_per_pass.append(sum(seen) - before)
+        torch.testing.assert_close(loss, loss_ref, rtol=0, atol=1e-6)
+        assert grads.keys() == grads_ref.keys()
+        for name, grad in grads.items():
+            torch.testing.assert_close(grad, grads_ref[name], rtol=1e-5, atol=1e-6, msg=name)
+    unique = {int(i): int(m.sum()) for i, m in zip(batch[PROMPT_ID], batch[PROMPT_MASK], strict=True)}
+    prompt_frames = sum(unique.values())  # each bank prompt once, however many samples share it
+    obs_frames = batch[reference.config.image_key].shape[:2].numel()
+    first, second = frames_per_pass
+    assert first - second == prompt_frames  # the warm step sends no prompt frame through the backbone
+    assert second == obs_frames
+
+
+def test_a_given_prompt_is_cached_by_its_content(tiny_build):
+    policy, _, _ = build_policy(tiny_build, freeze_backbone=True)
+    seen = count_backbone_frames(policy)
+    video = torch.rand(2, 3, 3, 64, 64)
+    with torch.no_grad():
+        a = policy.model.encode_prompt(video, None)
+        b = policy.model.encode_prompt(video.clone(), None)
+        other = policy.model.encode_prompt(video.flip(0), None)
+    assert torch.equal(a, b) and torch.equal(other, a.flip(0))
+    assert seen == [3, 3]  # only the first call ran the backbone, once per prompt
+    policy.model.clear_prompt_cache()
+    with torch.no_grad():
+        policy.model.encode_prompt(video, None)
+    assert seen == [3, 3, 3, 3]
+    with torch.no_grad():  # other backbone weights loaded: the cached tokens are not theirs
+        policy.model.backbone.load_state_dict(
+            {k: v + 0.01 for k, v in policy.model.backbone.state_dict().items()}
+        )
+        policy.model.encode_prompt(video, None)
+    assert seen == [3, 3, 3, 3, 3, 3]
+
+
+def test_a_trained_backbone_never_uses_the_cache(tiny_build):
+    policy, _, _ = build_policy(tiny_build, freeze_backbone=False, prompt_token_cache=True)
+    seen = count_backbone_frames(policy)
+    video = torch.rand(1, 3, 3, 64, 64)
+    with torch.no_grad():
+        policy.model.encode_prompt(video, None, torch.tensor([7]))
+        policy.model.encode_prompt(video, None, torch.tensor([7]))
+    assert seen == [3, 3]
+
+
+def test_prompt_cache_dtype_is_checked():
+    with pytest.raises(ValueError, match="prompt_cache_dtype must be"):
+        JEPTConfig.small(prompt_cache_dtype="int8", device="cpu")
+
+
+def test_chunked_checkpointed_prompt_frames_give_the_same_embedding_and_gradients():
+    from lerobot_jept.components.encoders import PromptVideoEncoder
+
+    sizes = dict(num_latents=8, num_queries=2, heads=2, ff_dim=32, dropout=0.0)
+    torch.manual_seed(0)
+    whole = PromptVideoEncoder(24, sizes, sizes, dim=16, max_frames=6, chunk_size=1000)
+    chunked = PromptVideoEncoder(24, sizes, sizes, dim=16, max_frames=6, chunk_size=4, checkpointing=True)
+    chunked.load_state_dict(whole.state_dict())
+    tokens = torch.randn(3, 6, 5, 24)
+    mask = torch.ones(3, 6, dtype=torch.bool)
+    mask[1, 4:] = False
+    outputs = []
+    for encoder in (whole, chunked):
+        encoder.zero_grad()
+        out = encoder(tokens.bfloat16() if encoder is chunked else tokens.bfloat16().float(), mask)
+        out.square().sum().backward()
+        outputs.append((out.detach(), {n: p.grad.clone() for n, p in encoder.named_parameters()}))
+    (ref, ref_grads), (out, grads) = outputs
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6)
+    for name, grad in grads.items():
+        torch.testing.assert_close(grad, ref_grads[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_control_keeps_the_prompt_embedding_until_a_parameter_changes(tiny_build):
+    policy, _, _ = build_policy(tiny_build, freeze_backbone=True)
+    policy.eval()
+    calls = []
+    policy.model.prompt_encoder.register_forward_hook(lambda *args: calls.append(1))
+    video, ids = torch.rand(2, 3, 3, 64, 64), torch.tensor([5, 6])
+    with torch.no_grad():
+        first = policy.model.encode_prompt(video, None, ids)
+        again = policy.model.encode_prompt(video, None, ids)
+        assert len(calls) == 1 and again is first
+        policy.model.prompt_encoder.video_perceiver.queries.add_(1.0)  # what an optimizer step does
+        changed = policy.model.encode_prompt(video, None, ids)
+    assert len(calls) == 2 and not torch.allclose(changed, first)
+    policy.train()
+    with torch.no_grad():
+        policy.model.encode_prompt(video, None, ids)
+    assert len(calls) == 3  # training never reuses an embedding
