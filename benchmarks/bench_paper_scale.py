@@ -50,14 +50,15 @@ def paper_policy(device: str, **overrides) -> JEPTPolicy:
 
 
 def paper_batch(cfg: JEPTConfig, batch_size: int, prompt_frames: int, device: str) -> dict:
-    """A preprocessed training batch: k + 1 frames, bin labels, one bank prompt per sample."""
+    """A preprocessed training batch: k + 1 frames, bin labels of the k context frames, one bank prompt per
+    sample."""
     t = cfg.n_obs_steps + 1
     return {
         IMAGE: torch.rand(batch_size, t, 3, SIZE, SIZE, device=device),
         f"{IMAGE}_is_pad": torch.zeros(batch_size, t, dtype=torch.bool, device=device),
         STATE: torch.randn(batch_size, t, 18, device=device),
-        "action": torch.randint(0, cfg.num_action_bins, (batch_size, t, 4), device=device),
-        "action_is_pad": torch.zeros(batch_size, t, dtype=torch.bool, device=device),
+        "action": torch.randint(0, cfg.num_action_bins, (batch_size, t - 1, 4), device=device),
+        "action_is_pad": torch.zeros(batch_size, t - 1, dtype=torch.bool, device=device),
         "task_index": torch.arange(batch_size, device=device) % 4,
         PROMPT_VIDEO: torch.rand(batch_size, prompt_frames, 3, SIZE, SIZE, device=device),
         PROMPT_MASK: torch.ones(batch_size, prompt_frames, dtype=torch.bool, device=device),
