@@ -139,13 +139,12 @@ class VisualPolicyNet(nn.Module):
 
     def prompt_keys(self, video: Tensor, real: Tensor, ids: Tensor | None) -> list[tuple]:
         """The cache key of each prompt of a batch: a bank prompt by its id and length, another by content."""
-        keys = []
-        for i in range(video.shape[0]):
-            if ids is not None and int(ids[i]) >= 0:
-                keys.append(("bank", int(ids[i]), int(real[i].sum())))
-            else:
-                keys.append(("content", content_key(video[i][real[i]])))
-        return keys
+        bank = [-1] * video.shape[0] if ids is None else ids.tolist()  # one device sync for the batch
+        lengths = real.sum(1).tolist()
+        return [
+            ("bank", i, n) if i >= 0 else ("content", content_key(video[b][real[b]]))
+            for b, (i, n) in enumerate(zip(bank, lengths, strict=True))
+        ]
 
     def prompt_backbone_tokens(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
         """Backbone tokens (B, N, P, C) of prompt frames (B, N, 3, H, W), without gradient.
@@ -175,9 +174,10 @@ class VisualPolicyNet(nn.Module):
             out = first.new_zeros(b, n, *first.shape[1:])
             for i, key in enumerate(keys):
                 out[i, real[i]] = cache[key]
-            limit = cfg.prompt_cache_max_gib * 2**30
-            while len(cache) > b and sum(t.numel() * t.element_size() for t in cache.values()) > limit:
-                cache.popitem(last=False)
+            size = sum(t.numel() * t.element_size() for t in cache.values())
+            while len(cache) > b and size > cfg.prompt_cache_max_gib * 2**30:
+                _, dropped = cache.popitem(last=False)
+                size -= dropped.numel() * dropped.element_size()
             return out
 
     def prompt_cache(self) -> OrderedDict:
