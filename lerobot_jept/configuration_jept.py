@@ -122,7 +122,8 @@ class JEPTConfig(PreTrainedConfig):
         prompt_cache_dtype: float32 (exact), bfloat16 or float16 (half the memory, rounded tokens).
         prompt_cache_max_gib: size bound of the prompt-token cache; the least recently used prompts go first.
         backbone_chunk_size: frames per backbone pass (prompt and observation frames), bounding the activation
-            memory of long prompts.
+            memory of long prompts. A backbone trained with batch norm (the small CPU configuration) takes all
+            frames in one pass in training, since chunks would change its batch statistics.
         prompt_frame_chunk_size, prompt_checkpointing: frames per pass of the prompt's per-frame Perceiver;
             with more than one chunk in a training step, each chunk's activations are recomputed in the
             backward pass instead of stored (same gradients, memory independent of batch x prompt length).

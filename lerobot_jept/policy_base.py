@@ -99,6 +99,12 @@ def content_key(frames: Tensor) -> str:
     return hashlib.blake2b(data, digest_size=16).hexdigest() + f":{tuple(frames.shape)}"
 
 
+def uses_batch_statistics(module: nn.Module) -> bool:
+    """Whether the module's output for one input depends on the rest of its batch (batch norm in training
+    mode), so that splitting a batch into chunks would change it."""
+    return any(isinstance(m, nn.modules.batchnorm._BatchNorm) and m.training for m in module.modules())
+
+
 def parameter_versions(modules: list[nn.Module]) -> tuple:
     """The in-place versions of the modules' parameters and buffers: every optimizer step and every load changes
     them, so a cache of their outputs keyed by them is never stale."""
@@ -114,7 +120,10 @@ class VisualPolicyNet(nn.Module):
 
     def backbone_tokens(self, images: Tensor) -> Tensor:
         """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution, ``backbone_chunk_size``
-        frames at a time (memory does not grow with the number of frames beyond one chunk's activations).
+        frames at a time (memory does not grow with the number of frames beyond one chunk's activations). Chunks
+        are exact only when a frame's tokens do not depend on the other frames of its pass: a backbone whose
+        batch norm normalises by batch statistics (trained, in training mode: the small CPU configuration)
+        takes all frames in one pass, as before chunking existed.
 
         A temporal prior (optical flow, VideoMAE) pairs each frame with the one before it along the last leading
         axis (time: (B, T, ...) windows, (N, ...) prompt frames); the first frame is paired with itself."""
@@ -125,6 +134,8 @@ class VisualPolicyNet(nn.Module):
             before = torch.cat([images[..., :1, :, :, :], images[..., :-1, :, :, :]], dim=-4)
             before = before.reshape(flat.shape)
         size, chunk = self.config.image_size, max(1, self.config.backbone_chunk_size)
+        if uses_batch_statistics(self.backbone):
+            chunk = len(flat)
         out = []
         for start in range(0, len(flat), chunk):
             parts = [x[start : start + chunk] for x in (flat, before) if x is not None]

@@ -88,6 +88,21 @@ def test_a_trained_backbone_never_uses_the_cache(tiny_build):
     assert seen == [3, 3]
 
 
+def test_a_batch_norm_backbone_in_training_is_never_chunked(tiny_build):
+    # chunks would change batch norm's batch statistics: the small configuration's ResNet takes every frame of a
+    # step in one pass in training (a prompt told apart from its scene-mate's by them: test_prompt.py)
+    frames = torch.rand(5, 3, 64, 64)
+    whole, _, _ = build_policy(tiny_build, freeze_backbone=False, backbone_chunk_size=1000)
+    policy, _, _ = build_policy(tiny_build, freeze_backbone=False, backbone_chunk_size=2)
+    seen = count_backbone_frames(policy.train())
+    with torch.no_grad():
+        torch.testing.assert_close(policy.model.backbone_tokens(frames), whole.train().model.backbone_tokens(frames))
+        assert seen == [5]
+        policy.eval()  # running statistics: each frame on its own, so chunks are exact
+        torch.testing.assert_close(policy.model.backbone_tokens(frames), whole.eval().model.backbone_tokens(frames))
+    assert seen == [5, 2, 2, 1]
+
+
 def test_prompt_cache_dtype_is_checked():
     with pytest.raises(ValueError, match="prompt_cache_dtype must be"):
         JEPTConfig.small(prompt_cache_dtype="int8", device="cpu")
