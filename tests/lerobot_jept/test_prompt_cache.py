@@ -96,10 +96,14 @@ def test_a_batch_norm_backbone_in_training_is_never_chunked(tiny_build):
     policy, _, _ = build_policy(tiny_build, freeze_backbone=False, backbone_chunk_size=2)
     seen = count_backbone_frames(policy.train())
     with torch.no_grad():
-        torch.testing.assert_close(policy.model.backbone_tokens(frames), whole.train().model.backbone_tokens(frames))
+        torch.testing.assert_close(
+            policy.model.backbone_tokens(frames), whole.train().model.backbone_tokens(frames)
+        )
         assert seen == [5]
         policy.eval()  # running statistics: each frame on its own, so chunks are exact
-        torch.testing.assert_close(policy.model.backbone_tokens(frames), whole.eval().model.backbone_tokens(frames))
+        torch.testing.assert_close(
+            policy.model.backbone_tokens(frames), whole.eval().model.backbone_tokens(frames)
+        )
     assert seen == [5, 2, 2, 1]
 
 
