@@ -240,8 +240,11 @@ def train_step(
 
     def prepare() -> list[str] | None:
         last = out / "checkpoints/last/pretrained_model/train_config.json"
-        if last.is_file():  # killed after a checkpoint: LeRobot's own resume
-            return [bin_path("lerobot-train"), f"--config_path={last}", "--resume=true"]
+        if last.is_file():  # killed after a checkpoint: LeRobot's own resume, from the numbered checkpoint
+            # `last` points at (so the log says which step the run resumed from: training_curves)
+            resolved = out / "checkpoints" / (out / "checkpoints/last").resolve().name
+            config = resolved / "pretrained_model/train_config.json"
+            return [bin_path("lerobot-train"), f"--config_path={config}", "--resume=true"]
         shutil.rmtree(out, ignore_errors=True)  # killed before any checkpoint: start clean
         return None
 
@@ -564,6 +567,12 @@ def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, l
             for line in log.read_text().splitlines():
                 if line.startswith("$ ") and "--resume=true" not in line:
                     series = {}  # the run restarted from scratch after a kill: its earlier lines are void
+                resumed = (
+                    re.search(r"checkpoints/(\d+)/pretrained_model", line) if line.startswith("$ ") else None
+                )
+                if resumed:  # resumed from a checkpoint: lines logged after it by the killed run are void
+                    kept = int(resumed.group(1)) // freq
+                    series = {name: ys[:kept] for name, ys in series.items()}
                 if " step:" not in f" {line}":
                     continue
                 for name in ("loss_obs", "loss_act"):

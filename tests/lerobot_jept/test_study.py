@@ -3,6 +3,7 @@
 import json
 import math
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from lerobot_jept.study import (
     main,
     plan,
     run_folder,
+    training_curves,
     validate,
     write_report,
 )
@@ -119,11 +121,32 @@ def test_killed_training_resumes_from_its_checkpoint_or_restarts_clean(tmp_path)
     train = step.folder / "train"
     (train / "logs").mkdir(parents=True)
     assert step.prepare() is None and not train.exists()  # killed before any checkpoint: start clean
-    last = train / "checkpoints/last/pretrained_model"
-    last.mkdir(parents=True)
-    (last / "train_config.json").write_text("{}")
+    saved = train / "checkpoints/000300/pretrained_model"
+    saved.mkdir(parents=True)
+    (saved / "train_config.json").write_text("{}")
+    (train / "checkpoints/last").symlink_to("000300")  # as LeRobot leaves it
     resumed = step.prepare()
-    assert resumed[1:] == [f"--config_path={last / 'train_config.json'}", "--resume=true"]
+    assert resumed[1:] == [f"--config_path={saved / 'train_config.json'}", "--resume=true"]
+
+
+def test_training_curves_drop_what_a_killed_run_logged_past_its_checkpoint(tmp_path):
+    cfg = study(tmp_path)
+    split = cfg.splits[0]
+    step = next(s for s in plan(cfg) if s.key == "s/JEPT/seed1/train")
+    saved = step.folder / "train/checkpoints/000002/pretrained_model"
+    saved.mkdir(parents=True)
+    (saved / "train_config.json").write_text(json.dumps({"log_freq": 1}))
+    (step.folder / "train/checkpoints/last").symlink_to("000002")
+
+    def logged(losses):
+        return "\n".join(f"INFO step:{i + 1} loss:9 loss_act:{v}" for i, v in enumerate(losses))
+
+    # killed at step 3 after the checkpoint of step 2, resumed from it, finished at step 4
+    (step.folder / "train.log").write_text(
+        f"$ lerobot-train --seed=1\n{logged([4, 3, 2.5])}\n$ {shlex.join(step.prepare())}\n"
+        + logged([0, 0, 2, 1]).split("\n", 2)[2]
+    )
+    assert training_curves(cfg, split)["JEPT"]["loss_act"] == [([1, 2, 3, 4], [4.0, 3.0, 2.0, 1.0])]
 
 
 def test_a_marker_of_another_command_is_refused(tmp_path):
