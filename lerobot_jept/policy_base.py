@@ -99,12 +99,6 @@ def content_key(frames: Tensor) -> str:
     return hashlib.blake2b(data, digest_size=16).hexdigest() + f":{tuple(frames.shape)}"
 
 
-def uses_batch_statistics(module: nn.Module) -> bool:
-    """Whether the module's output for one input depends on the rest of its batch (batch norm in training
-    mode), so that splitting a batch into chunks would change it."""
-    return any(isinstance(m, nn.modules.batchnorm._BatchNorm) and m.training for m in module.modules())
-
-
 def parameter_versions(modules: list[nn.Module]) -> tuple:
     """The in-place versions of the modules' parameters and buffers: every optimizer step and every load changes
     them, so a cache of their outputs keyed by them is never stale."""
@@ -134,7 +128,7 @@ class VisualPolicyNet(nn.Module):
             before = torch.cat([images[..., :1, :, :, :], images[..., :-1, :, :, :]], dim=-4)
             before = before.reshape(flat.shape)
         size, chunk = self.config.image_size, max(1, self.config.backbone_chunk_size)
-        if uses_batch_statistics(self.backbone):
+        if self.backbone.uses_batch_statistics:
             chunk = len(flat)
         out = []
         for start in range(0, len(flat), chunk):

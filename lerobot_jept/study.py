@@ -565,14 +565,13 @@ def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, l
             freq = json.loads(config.read_text()).get("log_freq", 1)
             series: dict[str, list[float]] = {}
             for line in log.read_text().splitlines():
-                if line.startswith("$ ") and "--resume=true" not in line:
-                    series = {}  # the run restarted from scratch after a kill: its earlier lines are void
-                resumed = (
-                    re.search(r"checkpoints/(\d+)/pretrained_model", line) if line.startswith("$ ") else None
-                )
-                if resumed:  # resumed from a checkpoint: lines logged after it by the killed run are void
-                    kept = int(resumed.group(1)) // freq
-                    series = {name: ys[:kept] for name, ys in series.items()}
+                if line.startswith("$ "):
+                    resumed = re.search(r"checkpoints/(\d+)/pretrained_model", line)
+                    if "--resume=true" not in line:
+                        series = {}  # the run restarted from scratch after a kill: its earlier lines are void
+                    elif resumed:  # resumed from a checkpoint: what the killed run logged past it is void
+                        series = {name: ys[: int(resumed.group(1)) // freq] for name, ys in series.items()}
+                    continue
                 if " step:" not in f" {line}":
                     continue
                 for name in ("loss_obs", "loss_act"):

@@ -191,6 +191,16 @@ class SpatialBackbone(nn.Module):
             self.model.eval()
             probe = self.tokens(torch.zeros(1, 3, image_size, image_size))
         self.num_tokens, self.dim = probe.shape[1], probe.shape[2]
+        # plain list, not submodules: found once instead of walking the model on every pass
+        self._batch_norms = [
+            m for m in self.model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)
+        ]
+
+    @property
+    def uses_batch_statistics(self) -> bool:
+        """Whether a frame's tokens depend on the other frames of its pass (batch norm in training mode), so
+        that splitting a pass into chunks would change them."""
+        return any(m.training for m in self._batch_norms)
 
     def train(self, mode: bool = True):
         super().train(mode)
