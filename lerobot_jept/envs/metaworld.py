@@ -18,7 +18,6 @@ import json
 from functools import cache
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
@@ -92,7 +91,20 @@ def task_description(task: str) -> str:
     return _lerobot_metaworld_config()["TASK_DESCRIPTIONS"][check_task(task)]
 
 
-class JeptMetaworldEnv(gym.Env):
+@cache
+def _mt1_task(task: str):
+    """The task's env class and MT1's first task (goal layout), once per process.
+
+    ``metaworld.MT1`` builds an env and resets it 50 times to draw its goals (about a second); the envs of one
+    evaluation batch share the result. It restores numpy's global random state, so skipping it changes nothing.
+    """
+    import metaworld
+
+    mt1 = metaworld.MT1(task, seed=42)
+    return mt1.train_classes[task], mt1.train_tasks[0]
+
+
+class JeptMetaworldEnv(spec.OneImagePerState):
     """A Meta-World task under the JEPT protocol.
 
     Args:
@@ -140,14 +152,13 @@ class JeptMetaworldEnv(gym.Env):
         if self._env is not None:
             return
         setup_offscreen_gl()
-        import metaworld
         import metaworld.policies
 
-        mt1 = metaworld.MT1(self.task, seed=42)
-        env = mt1.train_classes[self.task](
+        env_class, first_task = _mt1_task(self.task)
+        env = env_class(
             render_mode="rgb_array", camera_name=CAMERA_NAME, width=self.image_size, height=self.image_size
         )
-        env.set_task(mt1.train_tasks[0])
+        env.set_task(first_task)
         env.model.cam_pos[env.model.camera(CAMERA_NAME).id] = CORNER2_POS
         env._freeze_rand_vec = False  # a new object/goal layout at every reset ...
         env.seeded_rand_vec = True  # ... drawn from the seed given to `reset`
@@ -166,9 +177,7 @@ class JeptMetaworldEnv(gym.Env):
         # after this one) terminates the display; freeing it later raises EGL errors at exit.
         atexit.register(self.close)
 
-    def render(self) -> np.ndarray:
-        """The camera image, upright, (H, W, 3) uint8."""
-        self._ensure_env()
+    def _draw(self) -> np.ndarray:
         # Several envs in one process each own a GL context: make ours current before drawing.
         self._viewer.make_context_current()
         return np.ascontiguousarray(np.flip(self._env.render(), (0, 1)))
@@ -185,6 +194,7 @@ class JeptMetaworldEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._env.seed(seed)
+        self._state_changed()
         self._raw_obs, _ = self._env.reset()
         self._steps = 0
         return self._observation(), {"is_success": False}
@@ -193,6 +203,7 @@ class JeptMetaworldEnv(gym.Env):
         self._ensure_env()
         action = spec.checked_action(action, ACTION_DIM)
         reward, success = 0.0, False
+        self._state_changed()
         for _ in range(self.action_repeat):
             self._raw_obs, r, _, _, info = self._env.step(action)
             reward += float(r)
@@ -214,6 +225,7 @@ class JeptMetaworldEnv(gym.Env):
             self._viewer.make_context_current()
             self._env.close()
             self._env = None
+            self._state_changed()
 
 
 def observation_features(image_size: int) -> dict:

@@ -11,7 +11,6 @@ import atexit
 import difflib
 import xml.etree.ElementTree as ET
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
@@ -71,7 +70,7 @@ def task_description(task: str) -> str:
     return f"{manipulation} (prompted by {ARMS[arm]})"
 
 
-class JeptRobosuiteEnv(gym.Env):
+class JeptRobosuiteEnv(spec.OneImagePerState):
     """A robosuite task under the JEPT protocol: ``{"pixels", "agent_pos"}`` observations, 7-D OSC_POSE actions.
 
     Args:
@@ -147,8 +146,7 @@ class JeptRobosuiteEnv(gym.Env):
         ctx.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         ctx.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
 
-    def render(self) -> np.ndarray:
-        self._ensure_env()
+    def _draw(self) -> np.ndarray:
         self._env.sim._render_context_offscreen.gl_ctx.make_current()
         image = self._env.sim.render(width=self.image_size, height=self.image_size, camera_name=CAMERA_NAME)
         return np.ascontiguousarray(image[::-1])
@@ -171,6 +169,7 @@ class JeptRobosuiteEnv(gym.Env):
         if seed is not None:  # object placement and the robot's initial noise, from this seed
             self._env.rng.bit_generator.state = np.random.default_rng(seed).bit_generator.state
             np.random.seed(seed)
+        self._state_changed()
         self._raw_obs = self._env.reset()
         self._expert = make_expert(self.manipulation, self._env)
         self._steps = 0
@@ -180,6 +179,7 @@ class JeptRobosuiteEnv(gym.Env):
         """One control step without rendering: reward, success, truncated."""
         self._ensure_env()
         action = spec.checked_action(action, ACTION_DIM)
+        self._state_changed()
         self._raw_obs, reward, _, _ = self._env.step(action)
         success = bool(self._env._check_success())
         self._steps += 1
@@ -209,6 +209,7 @@ class JeptRobosuiteEnv(gym.Env):
             self._env.sim._render_context_offscreen.gl_ctx.make_current()
             self._env.close()
             self._env = None
+            self._state_changed()
 
 
 def excluding_contacts(xml: str, body_pairs: list[tuple[str, str]]) -> str:

@@ -1,7 +1,35 @@
 """What every JEPT env shares: the observation space and the LeRobot features the builders write for it."""
 
+import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+
+
+class OneImagePerState(gym.Env):
+    """A simulator env whose camera image is drawn once per state.
+
+    The observation and a later ``render`` (LeRobot's eval draws every step again for its videos) share one
+    image, which halves the rendering of an evaluated rollout. Subclasses draw in ``_draw`` and call
+    ``_state_changed`` whenever the simulator's state may change (reset, step, close).
+    """
+
+    _image: np.ndarray | None = None
+
+    def _ensure_env(self) -> None:
+        raise NotImplementedError
+
+    def _draw(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def _state_changed(self) -> None:
+        self._image = None
+
+    def render(self) -> np.ndarray:
+        """The camera image of the current state, upright, (H, W, 3) uint8."""
+        self._ensure_env()
+        if self._image is None:
+            self._image = self._draw()
+        return self._image.copy()
 
 
 def observation_space(image_size: int, state_dim: int) -> spaces.Dict:
