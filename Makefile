@@ -12,12 +12,12 @@ VENV := .venv
 RUN := MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/python
 export UV_PYTHON_DOWNLOADS := never
 
-.PHONY: help setup system-deps demo study test test-fast lint bench clean
+.PHONY: help setup system-deps demo study test test-slow test-all lint bench clean
 
 help:
 	@echo "make demo   set up, build a tiny Meta-World mixture, train jept with lerobot-train, run the eval suite"
 	@echo "make study  set up, run examples/studies/cpu_small.json (resumable; about 2 h here)"
-	@echo "make test   set up, lint, run every test (slow ones included)"
+	@echo "make test   set up, lint, run the tests (make test-slow: the slow ones; CI runs both)"
 	@echo "make bench  set up, print the benchmark figures (name: value)"
 
 system-deps:
@@ -50,10 +50,12 @@ study: setup
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/jept-study --config=examples/studies/cpu_small.json
 
 test: lint
-	$(RUN) -m pytest tests --durations=15
+	$(RUN) -m pytest tests -m "not slow" --durations=25
 
-test-fast: lint
-	$(RUN) -m pytest tests -m "not slow"
+test-slow: setup
+	$(RUN) -m pytest tests -m slow --durations=25
+
+test-all: test test-slow
 
 bench: setup
 	@$(RUN) -m benchmarks.bench_builder
