@@ -1,11 +1,13 @@
 """What every JEPT env shares: the observation space and the LeRobot features the builders write for it."""
 
+from abc import ABC, abstractmethod
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
 
-class OneImagePerState(gym.Env):
+class OneImagePerState(gym.Env, ABC):
     """A simulator env whose camera image is drawn once per state.
 
     The observation and a later ``render`` (LeRobot's eval draws every step again for its videos) share one
@@ -15,11 +17,13 @@ class OneImagePerState(gym.Env):
 
     _image: np.ndarray | None = None
 
+    @abstractmethod
     def _ensure_env(self) -> None:
-        raise NotImplementedError
+        """Create the simulator (and its GL context) on first use."""
 
+    @abstractmethod
     def _draw(self) -> np.ndarray:
-        raise NotImplementedError
+        """Render the current state's camera image, upright, (H, W, 3) uint8."""
 
     def _state_changed(self) -> None:
         self._image = None
