@@ -17,7 +17,8 @@ disjoint from everything else), or any labelled repo.
   JEPT also reports L_obs, the distance of its predicted next joint embeddings to the EMA targets.
 - Prompt swap. The same frames prompted by a scene-mate's bank prompt (tasks whose names share their first
   word, e.g. window-open / window-close; every other task for a repo without the builder's metadata): the
-  fraction of frames whose chosen action changes.
+  fraction of frames whose chosen action changes, and for JEPT the fraction whose L_obs rises (the predicted
+  next embedding follows the prompt, whether or not the action head reads the difference).
 - Per split (T_demo / T_vid / T_unseen, from the build's metadata): the mean over tasks of each measure.
 
     jept-prompt-probe --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_probe \\
@@ -194,6 +195,7 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
         prompts.update({m: bank.batch([bank.episodes(m)[0]]) for m in mates})
         outs: dict[str, list[torch.Tensor]] = {"labels": []}
         swaps = {m: [] for m in mates}
+        rises = {m: [] for m in mates}
         for start in range(0, len(indices), cfg.batch_size):
             items = [dataset[i] for i in indices[start : start + cfg.batch_size]]
             batch = {
@@ -212,6 +214,8 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
             for m in mates:
                 changed = (outputs[m]["control"].argmax(-1) != outputs[task]["control"].argmax(-1)).any(-1)
                 swaps[m].append(changed.cpu())
+                if "loss_obs" in outputs[task]:
+                    rises[m].append((outputs[m]["loss_obs"] > outputs[task]["loss_obs"]).cpu())
         labels = torch.cat(outs["labels"])
         row = {"task": names.get(task, task), "frames": int((labels >= 0).all(-1).sum())}
         for path in ("control", "inverse"):
@@ -220,6 +224,9 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
         if "loss_obs" in outs:
             row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
         row["swap_changed"] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in swaps.items()}
+        row["swap_raises_loss_obs"] = {
+            names.get(m, m): float(torch.cat(v).float().mean()) for m, v in rises.items() if v
+        }
         results[task] = row
     return results
 
@@ -311,11 +318,16 @@ def markdown(results: dict) -> str:
         f"{sep['nearest_centroid_accuracy']:.3f}, spread {sep['spread']:.3f}",
         "",
         "| Task | E_prt NC acc | frames | control whole | control per-dim | inverse whole | inverse per-dim "
-        "| L_obs | prompt swap changes action |",
+        "| L_obs | prompt swap changes action (raises L_obs) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for task, row in results["actions"].items():
-        swap = ", ".join(f"{m}: {v:.2f}" for m, v in row["swap_changed"].items()) or "-"
+        rises = row.get("swap_raises_loss_obs", {})
+        swap = ", ".join(
+            f"{m}: {v:.2f}" + (f" ({rises[m]:.2f})" if m in rises else "")
+            for m, v in row["swap_changed"].items()
+        )
+        swap = swap or "-"
         cells = [_cell(sep["per_task_accuracy"].get(task), 2), str(row["frames"])]
         cells += [_cell(row.get(k)) for k in ACTION_MEASURES]
         lines.append(f"| {task} | " + " | ".join(cells) + f" | {swap} |")

@@ -5,7 +5,15 @@ task and right in the other, from the same middle band, until it meets the wall.
 scene; the self-state gives the direction away (as Meta-World's scenes give most tasks away), so the paper's
 objective alone has no use for the prompt and lets E_prt collapse to a constant (spread 0.009 after 600 steps,
 against 0.93 with the prompt losses of ``JEPTConfig``). A micro model trained for a short run with the
-documented configuration must give the two tasks' held-out prompts separate, non-collapsed embeddings.
+documented configuration must give the two tasks' held-out prompts separate, non-collapsed embeddings, and its
+predicted next embedding must follow the prompt: the other task's prompt raises L_obs.
+
+Whether the other task's prompt also changes the *action* is not asked here: the self-state names the direction,
+which is the action, so the inverse dynamics may read the action from the state part of the predicted embedding
+(unchanged by the prompt: the direction never changes within an episode) or from the motion; both fit the
+labels exactly, and which one training picks depends on float rounding. Measured on one checkpoint recipe: the
+swap changed the action on 100% / 100% of frames on one machine, 100% / 24% on another, 0% / 0% with one thread,
+with L_obs raised on 100% of frames every time.
 """
 
 import numpy as np
@@ -137,6 +145,9 @@ def test_prompt_separates_two_tasks_of_one_scene(one_scene, tmp_path):
     probe_cfg = ProbeConfig(PolicyArg(str(path)), DatasetArg(probe), output_dir=None)
     results = run_probe(probe_cfg)
     rows = results["actions"]
-    print({task: row["swap_changed"] for task, row in rows.items()})
-    # the other task's prompt changes the chosen action on most frames
-    assert all(v >= 0.5 for row in rows.values() for v in row["swap_changed"].values()), rows
+    print({task: (row["swap_changed"], row["swap_raises_loss_obs"]) for task, row in rows.items()})
+    assert all(row["control_whole"] >= 0.9 for row in rows.values()), rows
+    # the prediction follows the prompt: the other task's prompt moves it away from what happens next
+    for task, row in rows.items():
+        (mate,) = set(TASKS) - {task}
+        assert row["swap_raises_loss_obs"][mate] >= 0.9, rows
