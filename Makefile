@@ -16,7 +16,7 @@ export UV_PYTHON_DOWNLOADS := never
 
 help:
 	@echo "make demo   set up, build a tiny Meta-World mixture, train jept with lerobot-train, run the eval suite"
-	@echo "make study  set up, run examples/studies/cpu_small.json (resumable; about 2 h here)"
+	@echo "make study  set up, run examples/studies/cpu_small.json (resumable; about 1 h 55 min here)"
 	@echo "make test   set up, lint, run the tests (make test-slow: the slow ones; CI runs both)"
 	@echo "make bench  set up, print the benchmark figures (name: value)"
 
