@@ -194,8 +194,7 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
         prompts = {task: bank.batch([bank.episodes(task)[0]])}
         prompts.update({m: bank.batch([bank.episodes(m)[0]]) for m in mates})
         outs: dict[str, list[torch.Tensor]] = {"labels": []}
-        swaps = {m: [] for m in mates}
-        rises = {m: [] for m in mates}
+        swaps = {key: {m: [] for m in mates} for key in ("swap_changed", "swap_raises_loss_obs")}
         for start in range(0, len(indices), cfg.batch_size):
             items = [dataset[i] for i in indices[start : start + cfg.batch_size]]
             batch = {
@@ -213,9 +212,10 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 outs.setdefault(key, []).append((value.argmax(-1) if value.ndim == 3 else value).cpu())
             for m in mates:
                 changed = (outputs[m]["control"].argmax(-1) != outputs[task]["control"].argmax(-1)).any(-1)
-                swaps[m].append(changed.cpu())
+                swaps["swap_changed"][m].append(changed.cpu())
                 if "loss_obs" in outputs[task]:
-                    rises[m].append((outputs[m]["loss_obs"] > outputs[task]["loss_obs"]).cpu())
+                    rises = outputs[m]["loss_obs"] > outputs[task]["loss_obs"]
+                    swaps["swap_raises_loss_obs"][m].append(rises.cpu())
         labels = torch.cat(outs["labels"])
         row = {"task": names.get(task, task), "frames": int((labels >= 0).all(-1).sum())}
         for path in ("control", "inverse"):
@@ -223,10 +223,8 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 row[f"{path}_whole"], row[f"{path}_per_dim"] = bin_accuracy(torch.cat(outs[path]), labels)
         if "loss_obs" in outs:
             row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
-        row["swap_changed"] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in swaps.items()}
-        row["swap_raises_loss_obs"] = {
-            names.get(m, m): float(torch.cat(v).float().mean()) for m, v in rises.items() if v
-        }
+        for key, per_mate in swaps.items():  # share of frames, per scene-mate
+            row[key] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in per_mate.items() if v}
         results[task] = row
     return results
 
