@@ -15,6 +15,8 @@ ROLE_SEED_BASE = {"demo": 10_000_000, "video": 10_000_000, "prompts": 20_000_000
 # Flags added after builds were made: a build recorded without one takes the value given now (its shards are
 # recorded on top of the existing ones), so an older build resumes with today's defaults.
 ADDED_FLAGS = ("probe_episodes_per_task",)
+# Content flags added later, with the value every build made before them had.
+LATER_FLAG_DEFAULTS = {"expert_random_prob": 0.0}
 # Flags that change what is written; a repo built with other values is never mixed with new episodes.
 CONTENT_FLAGS = (
     "demo_tasks",
@@ -26,6 +28,7 @@ CONTENT_FLAGS = (
     "image_size",
     "seed",
     "action_bins",
+    "expert_random_prob",
     "action_repeat",
     "max_episode_steps",
     "episodes_per_shard",
@@ -68,6 +71,10 @@ class BuildConfig:
         seed: base seed; the same flags and seed give the same episodes.
         num_workers: parallel rollout processes (one simulator env per process).
         action_bins: bins per action dimension; experts execute the nearest bin centre.
+        expert_random_prob: probability that a step executes (and records) a uniformly random bin action
+            instead of the expert's, drawn from the episode's seed. The paper mixes a second policy into its
+            experts "to ensure diversity" (Appendix B); without it every recorded action is a function of the
+            state, and inverse dynamics learned from the demos can read the action from the state alone.
         action_repeat: simulator steps per recorded step.
         max_episode_steps: recorded steps before an episode is truncated (and rejected as a failure).
         episodes_per_shard: unit of work and of resumption.
@@ -96,6 +103,7 @@ class BuildConfig:
     seed: int = 0
     num_workers: int = 1
     action_bins: int = 7
+    expert_random_prob: float = 0.0
     action_repeat: int = 2
     max_episode_steps: int = 250
     episodes_per_shard: int = 25
@@ -158,6 +166,7 @@ class Simulator(abc.ABC):
             "image_size": cfg.image_size,
             "fps": self.fps(cfg),
             "action_bins": cfg.action_bins,
+            "expert_random_prob": cfg.expert_random_prob,
             "action_repeat": cfg.action_repeat,
             "max_episode_steps": cfg.max_episode_steps,
         }
@@ -178,6 +187,8 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
         raise BuildError(f"--tasks must be at least 1, got {cfg.tasks}.")
     if cfg.action_bins < 2:
         raise BuildError(f"--action_bins must be at least 2, got {cfg.action_bins}.")
+    if not 0.0 <= cfg.expert_random_prob < 1.0:
+        raise BuildError(f"--expert_random_prob must be in [0, 1), got {cfg.expert_random_prob}.")
     if cfg.action_repeat < 1 or cfg.max_episode_steps < 1:
         raise BuildError("--action_repeat and --max_episode_steps must be at least 1.")
     if not cfg.demo_tasks and not cfg.video_tasks:

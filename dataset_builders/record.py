@@ -19,11 +19,14 @@ from collections import defaultdict
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict
 
+import numpy as np
+
 from dataset_builders.config import LABELLED_ROLES, BuildConfig, BuildError, Simulator
 from dataset_builders.plan import BuildPaths, Shard
-from lerobot_jept.discretization import snap_to_bins
+from lerobot_jept.discretization import bin_centres, snap_to_bins
 
 ROLLOUTS_AHEAD = 2  # episodes the rollout process may run ahead of the writing
+RANDOM_ACTION_STREAM = 7919  # keeps the random-action draws apart from the env's own use of the seed
 
 _ENV_CACHE: dict = {}  # one live env per process: (simulator name, task, flags) -> env
 
@@ -43,17 +46,22 @@ def close_envs() -> None:
     _ENV_CACHE.clear()
 
 
-def rollout_expert(env, seed: int, action_bins: int) -> tuple[list[dict], bool]:
+def rollout_expert(env, seed: int, action_bins: int, random_prob: float = 0.0) -> tuple[list[dict], bool]:
     """One expert episode: frames ``{observation.image, observation.state, action}`` and whether it succeeded.
 
     The expert's continuous action is snapped to the nearest bin centre, which is what the env executes and
-    what is recorded. The observation after the last action is not recorded (it has no action).
+    what is recorded; with probability ``random_prob`` a step takes a uniformly random bin action instead (its
+    draws come from ``seed``). The observation after the last action is not recorded (it has no action).
     """
     low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
+    centres = bin_centres(action_bins, low, high).astype(np.float32)
+    rng = np.random.default_rng([seed, RANDOM_ACTION_STREAM])
     obs, _ = env.reset(seed=seed)
     frames = []
     while True:
         action = snap_to_bins(env.expert_action(), action_bins, low, high)
+        if random_prob > 0 and rng.random() < random_prob:
+            action = centres[rng.integers(action_bins, size=action.shape)]
         frames.append(
             {"observation.image": obs["pixels"], "observation.state": obs["agent_pos"], "action": action}
         )
@@ -215,7 +223,12 @@ def _render_loop(conn) -> None:
         while (request := conn.recv()) is not None:
             sim, cfg, task, role, seed = request
             try:
-                result = (True, rollout_expert(_env_for(sim, task, cfg, role), seed, cfg.action_bins))
+                result = (
+                    True,
+                    rollout_expert(
+                        _env_for(sim, task, cfg, role), seed, cfg.action_bins, cfg.expert_random_prob
+                    ),
+                )
             except Exception as err:  # handed to the parent, which raises it
                 result = (False, err)
             outbox.put(result)

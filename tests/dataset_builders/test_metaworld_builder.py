@@ -1,5 +1,6 @@
 """The Meta-World builder on the real simulator, at tiny sizes (64x64 images, a few episodes)."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -14,8 +15,9 @@ import pandas as pd
 import pytest
 
 from dataset_builders import core
-from dataset_builders.core import BUILD_FILE, BuildError, build
+from dataset_builders.core import BUILD_FILE, BuildError, build, rollout_expert
 from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator, main
+from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs.metaworld import STATE_DIM, JeptMetaworldEnv, task_description
 from tests.conftest import SIM, TINY, load
 
@@ -162,6 +164,7 @@ def test_same_flags_give_same_episodes_with_any_worker_count(tmp_path):
         ({"episodes_per_task": 0}, "--episodes_per_task must be at least 1"),
         ({"demo_tasks": [], "video_tasks": []}, "Nothing to train on"),
         ({"repo_id": "no_org"}, "ORG/NAME"),
+        ({"expert_random_prob": 1.0}, "--expert_random_prob must be in \\[0, 1\\)"),
     ],
 )
 def test_bad_flags_get_one_line_errors(tmp_path, flags, message):
@@ -200,6 +203,41 @@ def test_build_recorded_before_the_probe_flag_resumes(tiny_build):
     record_path.write_text(json.dumps(record))
     build(cfg, SIM)
     assert json.loads(record_path.read_text())["flags"]["probe_episodes_per_task"] == 1
+
+
+def test_build_recorded_before_the_random_action_flag_counts_as_zero(tiny_build):
+    """A build recorded before --expert_random_prob existed was made without random actions: it resumes with
+    0 and is refused with another value."""
+    cfg, _ = tiny_build
+    record_path = lerobot_home() / "test/mw_tiny.build" / BUILD_FILE
+    record = json.loads(record_path.read_text())
+    del record["flags"]["expert_random_prob"]
+    record_path.write_text(json.dumps(record))
+    with pytest.raises(BuildError, match="--expert_random_prob=0.0 \\(now 0.25\\)"):
+        build(dataclasses.replace(cfg, expert_random_prob=0.25), SIM)
+    build(cfg, SIM)
+    assert json.loads(record_path.read_text())["flags"]["expert_random_prob"] == 0.0
+
+
+@pytest.mark.parametrize("random_prob", [0.0, 0.3])
+def test_expert_random_prob_replaces_that_share_of_expert_actions(random_prob):
+    """With --expert_random_prob=p about a share p of the steps record a random bin action instead of the
+    expert's (snapped) action, the same ones for the same seed."""
+    env = JeptMetaworldEnv("reach-v3", image_size=32, max_episode_steps=120)
+    expert = env.expert_action
+    runs = []
+    for _ in range(2):
+        asked = []
+        env.expert_action = lambda: asked.append(snap_to_bins(expert(), 7)) or expert()
+        frames, _ = rollout_expert(env, 5, 7, random_prob)
+        recorded = np.stack([f["action"] for f in frames])
+        runs.append((recorded, (recorded != np.stack(asked)).any(-1).mean()))
+    env.close()
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    centres = np.linspace(-1, 1, 7)
+    assert np.abs(runs[0][0][..., None] - centres).min(-1).max() < 1e-6
+    replaced = runs[0][1]
+    assert replaced == 0 if random_prob == 0 else 0.15 < replaced < 0.45, replaced
 
 
 def test_foreign_repo_is_not_overwritten(tmp_path):
