@@ -228,7 +228,7 @@ def test_expert_random_prob_replaces_that_share_of_expert_actions(random_prob):
     runs = []
     for _ in range(2):
         asked = []
-        env.expert_action = lambda: asked.append(snap_to_bins(expert(), 7)) or expert()
+        env.expert_action = lambda asked=asked: asked.append(snap_to_bins(expert(), 7)) or expert()
         frames, _ = rollout_expert(env, 5, 7, random_prob)
         recorded = np.stack([f["action"] for f in frames])
         runs.append((recorded, (recorded != np.stack(asked)).any(-1).mean()))
