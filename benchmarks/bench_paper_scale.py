@@ -61,7 +61,10 @@ def paper_batch(cfg: JEPTConfig, batch_size: int, prompt_frames: int, device: st
         "action": torch.randint(0, cfg.num_action_bins, (batch_size, t - 1, 4), device=device),
         "action_is_pad": torch.zeros(batch_size, t - 1, dtype=torch.bool, device=device),
         "task_index": torch.arange(batch_size, device=device) % 4,
-        PROMPT_VIDEO: torch.rand(batch_size, prompt_frames, 3, SIZE, SIZE, device=device),
+        # bank prompts come from the preprocessor as their decoded uint8 frames
+        PROMPT_VIDEO: torch.randint(
+            0, 256, (batch_size, prompt_frames, 3, SIZE, SIZE), dtype=torch.uint8, device=device
+        ),
         PROMPT_MASK: torch.ones(batch_size, prompt_frames, dtype=torch.bool, device=device),
         PROMPT_ID: torch.arange(batch_size, device=device),
     }
@@ -150,7 +153,10 @@ def peak_memory(device: str, batch_size: int, prompt_frames: int, timeout: int) 
 def first_step_ratio(device: str, repeats: int) -> tuple[float, float, float]:
     policy = paper_policy(device).eval()
     cfg = policy.config
-    prompt = torch.rand(1, cfg.max_prompt_length, 3, SIZE, SIZE, device=device)
+    shape = (1, cfg.max_prompt_length, 3, SIZE, SIZE)
+    prompt = torch.randint(
+        0, 256, shape, dtype=torch.uint8, device=device
+    )  # a bank prompt, as the preprocessor gives it
     obs = {
         IMAGE: torch.rand(1, 3, SIZE, SIZE, device=device),
         STATE: torch.randn(1, 18, device=device),

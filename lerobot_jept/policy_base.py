@@ -113,7 +113,8 @@ class VisualPolicyNet(nn.Module):
     backbone: SpatialBackbone
 
     def backbone_tokens(self, images: Tensor) -> Tensor:
-        """(..., 3, H, W) in [0, 1] -> (..., P, C), resized to the model's resolution, ``backbone_chunk_size``
+        """(..., 3, H, W) in [0, 1] (or uint8 in [0, 255], converted chunk by chunk: bank prompts come so) ->
+        (..., P, C), resized to the model's resolution, ``backbone_chunk_size``
         frames at a time (memory does not grow with the number of frames beyond one chunk's activations). Chunks
         are exact only when a frame's tokens do not depend on the other frames of its pass: a backbone whose
         batch norm normalises by batch statistics (trained, in training mode: the small CPU configuration)
@@ -133,6 +134,8 @@ class VisualPolicyNet(nn.Module):
         out = []
         for start in range(0, len(flat), chunk):
             parts = [x[start : start + chunk] for x in (flat, before) if x is not None]
+            if parts[0].dtype == torch.uint8:
+                parts = [x.float() / 255 for x in parts]
             if parts[0].shape[-2:] != (size, size):
                 parts = [
                     F.interpolate(x, size=(size, size), mode="bilinear", antialias=True, align_corners=False)

@@ -140,7 +140,7 @@ class JeptPromptVideoStep(ProcessorStep):
             if training or self._last is None or self._last[0] != episodes:
                 # inference repeats the same prompts every control step: build that batch once
                 ids = torch.tensor([self.prompt_id(ep) for ep in episodes], dtype=torch.long)
-                self._last = (episodes, (*self.bank.batch(episodes), ids))
+                self._last = (episodes, (*self.bank.batch(episodes, as_uint8=True), ids))
             observation[PROMPT_VIDEO], observation[PROMPT_MASK], observation[PROMPT_ID] = self._last[1]
         new = dict(transition)
         new[TransitionKey.OBSERVATION] = observation

@@ -83,13 +83,16 @@ class PromptBank:
         logging.debug("Decoded prompt episode %d of %s: %d frames", episode, self.repo_id, len(keep))
         return (resize_frames(frames.float(), self.image_size) * 255).round().clamp(0, 255).to(torch.uint8)
 
-    def batch(self, episodes: list[int]) -> tuple[Tensor, Tensor]:
-        """Prompt videos (B, N, 3, H, W) float in [0, 1], padded to the longest, and masks (B, N), True = real."""
+    def batch(self, episodes: list[int], as_uint8: bool = False) -> tuple[Tensor, Tensor]:
+        """Prompt videos (B, N, 3, H, W) float in [0, 1] (``as_uint8``: the decoded uint8 frames, a quarter of
+        the memory; the policies convert them frame chunk by frame chunk), padded to the longest, and masks
+        (B, N), True = real."""
         videos = [self.video(ep) for ep in episodes]
         n = max(len(v) for v in videos)
-        out = torch.zeros(len(videos), n, 3, self.image_size, self.image_size)
+        dtype = torch.uint8 if as_uint8 else torch.float32
+        out = torch.zeros(len(videos), n, 3, self.image_size, self.image_size, dtype=dtype)
         mask = torch.zeros(len(videos), n, dtype=torch.bool)
         for i, v in enumerate(videos):
-            out[i, : len(v)] = v.float() / 255
+            out[i, : len(v)] = v if as_uint8 else v.float() / 255
             mask[i, : len(v)] = True
         return out, mask

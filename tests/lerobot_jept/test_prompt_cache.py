@@ -6,7 +6,7 @@ import torch
 
 from lerobot_jept import JEPTConfig
 from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
-from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK
+from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from tests.lerobot_jept.test_policy import build_policy, mixed_batch
 
 
@@ -152,3 +152,24 @@ def test_control_keeps_the_prompt_embedding_until_a_parameter_changes(tiny_build
     with torch.no_grad():
         policy.model.encode_prompt(video, None, ids)
     assert len(calls) == 3  # training never reuses an embedding
+
+
+def test_bank_prompts_travel_as_uint8_and_give_the_float_prompts_loss(tiny_build):
+    """The preprocessor hands bank prompts over as their decoded uint8 frames (a quarter of float32's memory
+    and transfer); the policy converts them chunk by chunk to exactly the frames a float prompt carries."""
+    policy, pre, _ = build_policy(
+        tiny_build, freeze_backbone=True, prompt_token_cache=False, backbone_chunk_size=5
+    )
+    torch.manual_seed(0)
+    batch = pre(mixed_batch(policy.config, size=4))
+    video = batch[PROMPT_VIDEO]
+    assert video.dtype == torch.uint8 and video.max() > 1
+    as_float = {**batch, PROMPT_VIDEO: video.float() / 255}
+    policy.train()
+    losses = []
+    for given in (batch, as_float):
+        torch.manual_seed(1)
+        losses.append(loss_and_grads(policy, given))
+    torch.testing.assert_close(losses[0][0], losses[1][0], rtol=0, atol=0)
+    for name, grad in losses[0][1].items():
+        torch.testing.assert_close(grad, losses[1][1][name], rtol=0, atol=0, msg=name)
