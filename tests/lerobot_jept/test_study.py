@@ -291,7 +291,8 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
 
 
 @pytest.mark.parametrize(
-    "name", ["cpu_small", "paper_metaworld", "paper_table2", "paper_robosuite", "paper_table4"]
+    "name",
+    ["cpu_small", "cpu_small_videos", "paper_metaworld", "paper_table2", "paper_robosuite", "paper_table4"],
 )
 def test_shipped_study_files_parse_and_plan(name, monkeypatch):
     import draccus
@@ -308,6 +309,17 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         split = cfg.splits[0]
         assert len(split.video_tasks) >= 2 and len(split.unseen_tasks) >= 1 and cfg.device == "cpu"
         assert {m.name for m in cfg.methods} >= {"JEPT", "DT*", "BC+IDM", "Vid2Robot-M"}
+    if name == "cpu_small_videos":  # the same split and runs as cpu_small, JEPT with and without the videos
+        small = draccus.parse(StudyConfig, config_path="examples/studies/cpu_small.json", args=[])
+        assert (cfg.splits, cfg.build, cfg.steps, cfg.seeds) == (
+            small.splits,
+            small.build,
+            small.steps,
+            small.seeds,
+        )
+        assert [(m.config, m.data) for m in cfg.methods] == [
+            (small.methods[0].config, d) for d in ("mix", "demo")
+        ]
     if name == "paper_metaworld":
         split = cfg.splits[0]
         assert {"demo": split.demo_tasks, "video": split.video_tasks, "unseen": split.unseen_tasks} == {
