@@ -157,14 +157,14 @@ class JeptPromptVideoStep(ProcessorStep):
             video = video[None]
         if video.ndim != 5 or video.shape[2] != 3:
             raise ValueError(
-                f"observation.prompt_video must be (B, N, 3, H, W) floats in [0, 1], got {tuple(video.shape)}."
+                f"observation.prompt_video must be (B, N, 3, H, W) floats in [0, 1] or uint8, got {tuple(video.shape)}."
             )
         if video.shape[1] > self.max_frames:  # as the bank does: uniformly subsampled
             video = video[:, subsample_indices(video.shape[1], self.max_frames)]
         b, n = video.shape[:2]
-        return resize_frames(video.flatten(0, 1).float(), self.image_size).view(
-            b, n, 3, *([self.image_size] * 2)
-        )
+        frames = video.flatten(0, 1)
+        frames = frames.float() / 255 if frames.dtype == torch.uint8 else frames.float()
+        return resize_frames(frames, self.image_size).view(b, n, 3, *([self.image_size] * 2))
 
     def get_config(self) -> dict[str, Any]:
         return {

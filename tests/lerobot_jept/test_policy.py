@@ -330,6 +330,8 @@ def test_prompt_bank_lookup(tiny_build):
     given = torch.rand(1, 3, 3, 32, 32)
     out = step({**obs, TransitionKey.OBSERVATION: {PROMPT_VIDEO: given}})[TransitionKey.OBSERVATION]
     assert out[PROMPT_VIDEO].shape == (1, 3, 3, 64, 64)  # the caller's prompt, at model resolution
+    as_uint8 = step({**obs, TransitionKey.OBSERVATION: {PROMPT_VIDEO: first}})[TransitionKey.OBSERVATION]
+    torch.testing.assert_close(as_uint8[PROMPT_VIDEO], first.float() / 255)  # a uint8 prompt means 0-255
     with pytest.raises(PromptNotFoundError, match=r"'Open a door'.*test/mw_tiny_prompts"):
         step({**obs, TransitionKey.COMPLEMENTARY_DATA: {"task": ["Open a door"]}})
 
