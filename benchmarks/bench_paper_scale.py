@@ -153,10 +153,8 @@ def peak_memory(device: str, batch_size: int, prompt_frames: int, timeout: int) 
 def first_step_ratio(device: str, repeats: int) -> tuple[float, float, float]:
     policy = paper_policy(device).eval()
     cfg = policy.config
-    shape = (1, cfg.max_prompt_length, 3, SIZE, SIZE)
-    prompt = torch.randint(
-        0, 256, shape, dtype=torch.uint8, device=device
-    )  # a bank prompt, as the preprocessor gives it
+    shape = (1, cfg.max_prompt_length, 3, SIZE, SIZE)  # a bank prompt, uint8 as the preprocessor gives it
+    prompt = torch.randint(0, 256, shape, dtype=torch.uint8, device=device)
     obs = {
         IMAGE: torch.rand(1, 3, SIZE, SIZE, device=device),
         STATE: torch.randn(1, 18, device=device),

@@ -12,11 +12,9 @@ BUILD_FILE = "jept_build.json"  # written in <work dir>/ and in every repo's met
 # prompt videos and probe episodes never share a seed, and all stay clear of lerobot-eval's default seeds (1000 + episode).
 SEED_BLOCK = 10_000
 ROLE_SEED_BASE = {"demo": 10_000_000, "video": 10_000_000, "prompts": 20_000_000, "probe": 30_000_000}
-# Flags added after builds were made: a build recorded without one takes the value given now (its shards are
-# recorded on top of the existing ones), so an older build resumes with today's defaults.
-ADDED_FLAGS = ("probe_episodes_per_task",)
-# Content flags added later, with the value every build made before them had.
-LATER_FLAG_DEFAULTS = {"expert_random_prob": 0.0}
+# Flags added after builds were made, with the value a build recorded without one had: None = the value given
+# now (its shards are recorded on top of the existing ones, so an older build resumes with today's defaults).
+ADDED_FLAGS = {"probe_episodes_per_task": None, "expert_random_prob": 0.0}
 # Flags that change what is written; a repo built with other values is never mixed with new episodes.
 CONTENT_FLAGS = (
     "demo_tasks",

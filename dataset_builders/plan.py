@@ -8,7 +8,6 @@ from pathlib import Path
 from dataset_builders.config import (
     ADDED_FLAGS,
     BUILD_FILE,
-    LATER_FLAG_DEFAULTS,
     ROLE_SEED_BASE,
     ROLES,
     SEED_BLOCK,
@@ -90,13 +89,8 @@ def check_existing(paths: BuildPaths, cfg: BuildConfig, sim: Simulator) -> dict 
         return None
     record = json.loads(record_path.read_text())
     wanted = {"simulator": sim.name, **cfg.content_flags()}
-    added = {name: wanted[name] for name in ADDED_FLAGS}
-    previous = {
-        "simulator": record.get("simulator"),
-        **added,
-        **LATER_FLAG_DEFAULTS,
-        **record.get("flags", {}),
-    }
+    added = {name: wanted[name] if old is None else old for name, old in ADDED_FLAGS.items()}
+    previous = {"simulator": record.get("simulator"), **added, **record.get("flags", {})}
     changed = [f"--{k}={previous.get(k)!r} (now {v!r})" for k, v in wanted.items() if previous.get(k) != v]
     if changed:
         raise BuildError(

@@ -223,12 +223,8 @@ def _render_loop(conn) -> None:
         while (request := conn.recv()) is not None:
             sim, cfg, task, role, seed = request
             try:
-                result = (
-                    True,
-                    rollout_expert(
-                        _env_for(sim, task, cfg, role), seed, cfg.action_bins, cfg.expert_random_prob
-                    ),
-                )
+                env = _env_for(sim, task, cfg, role)
+                result = (True, rollout_expert(env, seed, cfg.action_bins, cfg.expert_random_prob))
             except Exception as err:  # handed to the parent, which raises it
                 result = (False, err)
             outbox.put(result)

@@ -20,6 +20,7 @@ from lerobot_jept.components.encoders import ObservationTokenizer, PromptVideoEn
 from lerobot_jept.components.predictor import ActionHead
 from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
+from lerobot_jept.prompts import unit_float
 
 PROMPT_VIDEO = "observation.prompt_video"
 PROMPT_MASK = "observation.prompt_video_mask"
@@ -133,9 +134,7 @@ class VisualPolicyNet(nn.Module):
             chunk = len(flat)
         out = []
         for start in range(0, len(flat), chunk):
-            parts = [x[start : start + chunk] for x in (flat, before) if x is not None]
-            if parts[0].dtype == torch.uint8:
-                parts = [x.float() / 255 for x in parts]
+            parts = [unit_float(x[start : start + chunk]) for x in (flat, before) if x is not None]
             if parts[0].shape[-2:] != (size, size):
                 parts = [
                     F.interpolate(x, size=(size, size), mode="bilinear", antialias=True, align_corners=False)

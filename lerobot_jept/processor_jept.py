@@ -25,7 +25,7 @@ from torch import Tensor
 from lerobot_jept.configuration_jept import JEPTConfig
 from lerobot_jept.envs.spec import ACTION_LABELLED
 from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
-from lerobot_jept.prompts import PromptBank, resize_frames, subsample_indices
+from lerobot_jept.prompts import PromptBank, resize_frames, subsample_indices, unit_float
 
 
 @ProcessorStepRegistry.register("jept_action_bins")
@@ -162,9 +162,8 @@ class JeptPromptVideoStep(ProcessorStep):
         if video.shape[1] > self.max_frames:  # as the bank does: uniformly subsampled
             video = video[:, subsample_indices(video.shape[1], self.max_frames)]
         b, n = video.shape[:2]
-        frames = video.flatten(0, 1)
-        frames = frames.float() / 255 if frames.dtype == torch.uint8 else frames.float()
-        return resize_frames(frames, self.image_size).view(b, n, 3, *([self.image_size] * 2))
+        frames = resize_frames(unit_float(video.flatten(0, 1)).float(), self.image_size)
+        return frames.view(b, n, 3, *([self.image_size] * 2))
 
     def get_config(self) -> dict[str, Any]:
         return {

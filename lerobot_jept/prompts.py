@@ -26,6 +26,11 @@ def subsample_indices(length: int, max_frames: int) -> np.ndarray:
     return np.rint(np.linspace(0, length - 1, max_frames)).astype(np.int64)
 
 
+def unit_float(frames: Tensor) -> Tensor:
+    """uint8 frames (0-255, as bank prompts travel) as float32 in [0, 1]; floating-point frames as given."""
+    return frames.float() / 255 if frames.dtype == torch.uint8 else frames
+
+
 def resize_frames(frames: Tensor, size: int) -> Tensor:
     """(N, 3, H, W) float in [0, 1] -> (N, 3, size, size)."""
     if frames.shape[-2:] == (size, size):
@@ -93,6 +98,6 @@ class PromptBank:
         out = torch.zeros(len(videos), n, 3, self.image_size, self.image_size, dtype=dtype)
         mask = torch.zeros(len(videos), n, dtype=torch.bool)
         for i, v in enumerate(videos):
-            out[i, : len(v)] = v if as_uint8 else v.float() / 255
+            out[i, : len(v)] = v if as_uint8 else unit_float(v)
             mask[i, : len(v)] = True
         return out, mask
