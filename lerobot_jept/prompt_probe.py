@@ -231,12 +231,13 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
 
 SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
 ACTION_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
-MEASURES = (*ACTION_MEASURES, "nc_accuracy")
+MEASURES = (*ACTION_MEASURES, "nc_accuracy", "swap_changed")
 
 
 def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float], split: dict) -> dict:
     """Mean over each split's tasks (T_demo / T_vid / T_unseen) of every measure the rows carry, plus the
-    E_prt nearest-centroid accuracy; splits without a probed task are left out."""
+    E_prt nearest-centroid accuracy and the share of frames whose action changes under a scene-mate's prompt
+    (tasks with a scene-mate only); splits without a probed task are left out."""
     out = {}
     for key, tasks in split.items():
         present = [t for t in tasks if t in rows]
@@ -246,6 +247,8 @@ def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float]
         for measure in MEASURES:
             if measure == "nc_accuracy":
                 values = [separability_per_task[t] for t in present if t in separability_per_task]
+            elif measure == "swap_changed":
+                values = [np.mean(list(swaps.values())) for t in present if (swaps := rows[t].get(measure))]
             else:
                 values = [rows[t][measure] for t in present if measure in rows[t]]
             if values:
@@ -333,11 +336,12 @@ def markdown(results: dict) -> str:
         lines += [
             "",
             "| Split | tasks | E_prt NC acc | control whole | control per-dim | inverse whole | inverse per-dim "
-            "| L_obs |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|",
+            "| L_obs | prompt swap changes action |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, row in results["splits"].items():
             cells = [_cell(row.get("nc_accuracy"), 2)] + [_cell(row.get(k)) for k in ACTION_MEASURES]
+            cells.append(_cell(row.get("swap_changed"), 2))
             lines.append(f"| {name} | {len(row['tasks'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -43,7 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_jept.compare import t_interval
-from lerobot_jept.prompt_probe import ACTION_MEASURES as PROBE_MEASURES
+from lerobot_jept.prompt_probe import MEASURES as PROBE_MEASURES
 
 # The paper's Table 2 (JEPT, success %) against the number of T_vid tasks in the mixture.
 PAPER_TABLE2 = {
@@ -533,8 +533,8 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
         return "", {}
     lines = [
         "| Method | Split | control whole (%) | control per-dim (%) | inverse whole (%) | inverse per-dim (%) "
-        "| L_obs |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| L_obs | E_prt NC (%) | prompt swap changes action (%) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     summary: dict = {}
     for method, groups in values.items():
@@ -689,7 +689,9 @@ def write_report(cfg: StudyConfig) -> Path:
             lines += [
                 "Offline probe on the held-out `_probe` repo (action-bin accuracy of a_t: `control` = the action "
                 "the policy would choose, `inverse` = JEPT's inverse dynamics from the real next frame; L_obs = "
-                "JEPT's next-embedding error), mean [95% interval] over seeds:",
+                "JEPT's next-embedding error; E_prt NC = nearest-centroid accuracy of the prompt embedding over the "
+                "tasks, held-out prompts; prompt swap = share of frames whose chosen action changes when the task's "
+                "prompt is replaced by its scene-mate's), mean [95% interval] over seeds:",
                 "",
                 probe,
             ]
