@@ -193,26 +193,37 @@ def main() -> None:
     parser.add_argument("--batch_size", type=int, default=32)
     parser.add_argument("--prompt_frames", type=int, default=250)
     parser.add_argument("--peak_timeout", type=int, default=1800)
+    parser.add_argument(
+        "--figures",
+        default="speedup,first_step,peak",
+        help="which figures to measure, comma-separated (the peak alone takes about 13 minutes on 2 CPU cores)",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    figures = set(args.figures.split(","))
+    if not figures or figures - {"speedup", "first_step", "peak"}:
+        parser.error(f"--figures takes speedup, first_step and/or peak, got {args.figures!r}")
     torch.set_num_threads(os.cpu_count() or 1)
     if args.child:
         peak_child(args.device, args.batch_size, args.prompt_frames)
         return
 
-    times = prompt_cache_speedup(args.device, args.repeats)
-    for phase in ("encoder", "others"):
-        print(f"paper_train_step_{phase}_uncached_s: {times[False, phase]:.2f}")
-        print(f"paper_train_step_{phase}_cached_s: {times[True, phase]:.2f}")
-        print(
-            f"paper_train_step_{phase}_prompt_cache_speedup: {times[False, phase] / times[True, phase]:.2f}"
-        )
-    total = {cached: times[cached, "encoder"] + times[cached, "others"] for cached in (False, True)}
-    print(f"paper_train_step_prompt_cache_speedup: {total[False] / total[True]:.2f}")
-    ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
-    print(f"select_action_first_step_s: {first:.3f}")
-    print(f"select_action_later_step_s: {later:.3f}")
-    print(f"select_action_first_step_vs_later: {ratio:.2f}")
+    if "speedup" in figures:
+        times = prompt_cache_speedup(args.device, args.repeats)
+        for phase in ("encoder", "others"):
+            uncached, cached = times[False, phase], times[True, phase]
+            print(f"paper_train_step_{phase}_uncached_s: {uncached:.2f}")
+            print(f"paper_train_step_{phase}_cached_s: {cached:.2f}")
+            print(f"paper_train_step_{phase}_prompt_cache_speedup: {uncached / cached:.2f}", flush=True)
+        total = {cached: times[cached, "encoder"] + times[cached, "others"] for cached in (False, True)}
+        print(f"paper_train_step_prompt_cache_speedup: {total[False] / total[True]:.2f}", flush=True)
+    if "first_step" in figures:
+        ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
+        print(f"select_action_first_step_s: {first:.3f}")
+        print(f"select_action_later_step_s: {later:.3f}")
+        print(f"select_action_first_step_vs_later: {ratio:.2f}", flush=True)
+    if "peak" not in figures:
+        return
     peak, status = peak_memory(args.device, args.batch_size, args.prompt_frames, args.peak_timeout)
     name = f"paper_train_peak_gib_b{args.batch_size}_p{args.prompt_frames}"
     print(f"{name}: {'failed' if peak is None else f'{peak:.2f}'} ({args.device}, {status})")
