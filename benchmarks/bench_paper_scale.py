@@ -27,7 +27,7 @@ import time
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
-from benchmarks.bench_policy import median_time
+from benchmarks.bench_policy import median_time, step_times
 from lerobot_jept import JEPTConfig, JEPTPolicy
 from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.policy_base import CACHE_DTYPES
@@ -122,11 +122,8 @@ def prompt_cache_speedup(device: str, repeats: int) -> dict[str, float]:
         for cached in (False, True, True, False):
             policy, optimizer, batch = runs[cached]
             set_phase(policy, phase)
-            train_step(policy, optimizer, batch)  # warm-up (fills the cache when on)
-            for _ in range(repeats):
-                start = time.perf_counter()
-                train_step(policy, optimizer, batch)
-                samples[cached].append(time.perf_counter() - start)
+            step = lambda p=policy, o=optimizer, b=batch: train_step(p, o, b)  # noqa: E731
+            samples[cached] += step_times(step, repeats, warmup=1)  # the warm-up fills the cache when on
         for cached, values in samples.items():
             times[cached, phase] = statistics.median(values)
     return times
@@ -206,7 +203,7 @@ def main() -> None:
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     figures = set(args.figures.split(","))
-    if not figures or figures - {"speedup", "first_step", "peak"}:
+    if figures - {"speedup", "first_step", "peak"}:
         parser.error(f"--figures takes speedup, first_step and/or peak, got {args.figures!r}")
     torch.set_num_threads(os.cpu_count() or 1)
     if args.child:

@@ -28,7 +28,8 @@ from lerobot_jept import DTStarConfig, IDMConfig, JEPTConfig, JEPTPolicy, Vid2Ro
 from lerobot_jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
 
 
-def median_time(fn, repeats: int, warmup: int = 2) -> float:
+def step_times(fn, repeats: int, warmup: int = 2) -> list[float]:
+    """Seconds of each of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones."""
     for _ in range(warmup):
         fn()
     times = []
@@ -36,7 +37,11 @@ def median_time(fn, repeats: int, warmup: int = 2) -> float:
         start = time.perf_counter()
         fn()
         times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return times
+
+
+def median_time(fn, repeats: int, warmup: int = 2) -> float:
+    return statistics.median(step_times(fn, repeats, warmup))
 
 
 def select_action_speedup(repeats: int) -> tuple[float, float]:
