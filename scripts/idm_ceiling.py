@@ -1,0 +1,124 @@
+"""How well can inverse dynamics learned on the demo tasks alone act on the other tasks, from the true state?
+
+    python -m scripts.idm_ceiling --demo_repo_id=ORG/NAME_demo --probe_repo_id=ORG/NAME_probe
+
+A property of the data, not of a checkpoint: JEPT's actions on a video-only task come from inverse dynamics
+learned on the demo tasks (P(a_t | o_t, o_t+1), Section 3.2). Per task of the labelled probe repo, this prints
+
+- the share of frames whose whole binned action occurs anywhere in the demo repo (a classifier fitted on the demos
+  has never seen the others as a label);
+- the whole-action and per-dimension accuracy of an MLP inverse-dynamics model fitted on every frame of the demo
+  repo, whose input is the true change of the self-state over the next ``--steps`` steps
+  (s_t+1 - s_t, ..., s_t+steps - s_t+steps-1), i.e. the best case of a perfect next-frame embedding.
+
+On the demo tasks' own held-out episodes this is near 1; how far it falls on a video-only task bounds what any
+inverse dynamics fitted on these demos can reach there. Used in docs/prompt_collapse.md, section 7.
+"""
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import draccus
+import numpy as np
+
+from lerobot_jept.discretization import to_bin_indices
+from lerobot_jept.prompt_probe import task_names
+
+
+@dataclass
+class CeilingConfig:
+    demo_repo_id: str = ""  # labelled repo the inverse dynamics is fitted on (a build's `_demo`)
+    probe_repo_id: str = ""  # labelled held-out repo it is scored on (a build's `_probe`)
+    root: Path | None = None  # parent folder of both repos (default: $HF_LEROBOT_HOME)
+    steps: int = 1  # self-state changes after t given to the model (1 = the next frame only)
+    num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
+    seed: int = 0
+
+
+def load_frames(repo_id: str, root: Path | None, steps: int, num_bins: int) -> dict[str, np.ndarray]:
+    """Every frame t with ``steps`` frames after it in its episode: state changes, binned action, task (the
+    builder's task name where the repo has build metadata, else the task string)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
+    if "action" not in dataset.meta.features:
+        raise ValueError(
+            f"{repo_id} has no `action` column: pass labelled repos (a build's `_demo` and `_probe`), not `_video`."
+        )
+    names = task_names(dataset.meta) or {}
+    tasks = dataset.meta.tasks
+    task_of = {int(i): names.get(t, t) for t, i in zip(tasks.index, tasks["task_index"], strict=True)}
+    table = dataset.hf_dataset.with_format("numpy")
+    episode = table["episode_index"]
+    state, action, task_index = table["observation.state"], table["action"], table["task_index"]
+    features, labels, frame_tasks = [], [], []
+    for ep in np.unique(episode):
+        rows = np.flatnonzero(episode == ep)
+        s = state[rows]
+        delta = s[1:] - s[:-1]
+        for t in range(len(rows) - steps):
+            features.append(delta[t : t + steps].reshape(-1))
+            labels.append(to_bin_indices(action[rows[t]], num_bins))
+            frame_tasks.append(task_of[int(task_index[rows[t]])])
+    return {"x": np.array(features), "y": np.array(labels), "task": np.array(frame_tasks)}
+
+
+def ceiling(demo: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int = 0) -> dict[str, dict]:
+    """Per probe task: frames, share of frames whose whole action is in the demos' support, MLP accuracies."""
+    from sklearn.neural_network import MLPClassifier
+    from sklearn.preprocessing import StandardScaler
+
+    scaler = StandardScaler().fit(demo["x"])
+    x_train, x_test = scaler.transform(demo["x"]), scaler.transform(probe["x"])
+    predicted = np.zeros_like(probe["y"])
+    for d in range(demo["y"].shape[1]):
+        y = demo["y"][:, d]
+        if len(set(y)) == 1:  # a dimension the demos never move (the gripper of some tasks)
+            predicted[:, d] = y[0]
+            continue
+        model = MLPClassifier((128, 128), max_iter=400, random_state=seed)
+        predicted[:, d] = model.fit(x_train, y).predict(x_test)
+    support = {tuple(a) for a in demo["y"]}
+    in_support = np.array([tuple(a) in support for a in probe["y"]])
+    hits = predicted == probe["y"]
+    out = {}
+    for task in sorted(set(probe["task"])):
+        rows = probe["task"] == task
+        out[task] = {
+            "frames": int(rows.sum()),
+            "in_demo_support": float(in_support[rows].mean()),
+            "whole": float(hits[rows].all(1).mean()),
+            "per_dim": [float(v) for v in hits[rows].mean(0)],
+        }
+    return out
+
+
+def markdown(results: dict[str, dict], demo_tasks: set[str]) -> str:
+    lines = [
+        "| task | in demos | frames | whole action in demo support | state-IDM whole | state-IDM per dim |",
+        "|---|---|---:|---:|---:|---|",
+    ]
+    for task, r in results.items():
+        per_dim = " / ".join(f"{v:.2f}" for v in r["per_dim"])
+        lines.append(
+            f"| {task} | {'yes' if task in demo_tasks else 'no'} | {r['frames']} | {r['in_demo_support']:.2f} "
+            f"| {r['whole']:.2f} | {per_dim} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    cfg = draccus.parse(config_class=CeilingConfig)
+    if not cfg.demo_repo_id or not cfg.probe_repo_id:
+        raise SystemExit(
+            "Pass --demo_repo_id=ORG/NAME_demo and --probe_repo_id=ORG/NAME_probe (labelled repos)."
+        )
+    if cfg.steps < 1:
+        raise SystemExit(f"--steps must be at least 1 (the next frame), got {cfg.steps}.")
+    demo = load_frames(cfg.demo_repo_id, cfg.root, cfg.steps, cfg.num_bins)
+    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins)
+    print(markdown(ceiling(demo, probe, cfg.seed), set(demo["task"])))
+
+
+if __name__ == "__main__":
+    main()
