@@ -41,10 +41,12 @@ def load_frames(repo_id: str, root: Path | None, steps: int, num_bins: int) -> d
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
-    if "action" not in dataset.meta.features:
-        raise ValueError(
-            f"{repo_id} has no `action` column: pass labelled repos (a build's `_demo` and `_probe`), not `_video`."
-        )
+    for key, fix in (
+        ("action", "pass labelled repos (a build's `_demo` and `_probe`), not `_video`"),
+        ("observation.state", "the ceiling is fitted on the self-state; rebuild with it recorded"),
+    ):
+        if key not in dataset.meta.features:
+            raise ValueError(f"{repo_id} has no `{key}` column: {fix}.")
     names = task_names(dataset.meta) or {}
     tasks = dataset.meta.tasks
     task_of = {int(i): names.get(t, t) for t, i in zip(tasks.index, tasks["task_index"], strict=True)}

@@ -1,6 +1,7 @@
 """The state inverse-dynamics ceiling (scripts/idm_ceiling.py) on a real tiny build and on hand-made frames."""
 
 import numpy as np
+import pytest
 
 from scripts.idm_ceiling import ceiling, load_frames
 from tests.conftest import TINY, load
@@ -16,6 +17,8 @@ def test_frames_pair_each_action_with_the_next_state_change(tiny_build):
     state, action = first["observation.state"], first["action"]
     assert np.allclose(frames["x"][0], np.concatenate([state[1] - state[0], state[2] - state[1]]))
     assert (frames["y"][0] == np.rint((np.clip(action[0], -1, 1) + 1) * 3)).all()  # 7 bins over [-1, 1]
+    with pytest.raises(ValueError, match="test/mw_tiny_video has no `action` column"):
+        load_frames("test/mw_tiny_video", None, steps=1, num_bins=7)
 
 
 def test_ceiling_counts_support_and_scores_per_task():
