@@ -65,6 +65,19 @@ def load_frames(repo_id: str, root: Path | None, steps: int, num_bins: int) -> d
     return {"x": np.array(features), "y": np.array(labels), "task": np.array(frame_tasks)}
 
 
+def fit_per_dimension(make_model, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray) -> np.ndarray:
+    """(N_test, D) bin predicted per action dimension by a fresh ``make_model()`` classifier fitted on that
+    dimension; a dimension with one bin in the training labels is predicted as that bin."""
+    predicted = np.zeros((len(x_test), y_train.shape[1]), dtype=y_train.dtype)
+    for d in range(y_train.shape[1]):
+        y = y_train[:, d]
+        if len(set(y)) == 1:  # a dimension the demos never move (the gripper of some tasks)
+            predicted[:, d] = y[0]
+            continue
+        predicted[:, d] = make_model().fit(x_train, y).predict(x_test)
+    return predicted
+
+
 def ceiling(demo: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int = 0) -> dict[str, dict]:
     """Per probe task: frames, share of frames whose whole action is in the demos' support, MLP accuracies."""
     from sklearn.neural_network import MLPClassifier
@@ -72,14 +85,8 @@ def ceiling(demo: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int
 
     scaler = StandardScaler().fit(demo["x"])
     x_train, x_test = scaler.transform(demo["x"]), scaler.transform(probe["x"])
-    predicted = np.zeros_like(probe["y"])
-    for d in range(demo["y"].shape[1]):
-        y = demo["y"][:, d]
-        if len(set(y)) == 1:  # a dimension the demos never move (the gripper of some tasks)
-            predicted[:, d] = y[0]
-            continue
-        model = MLPClassifier((128, 128), max_iter=400, random_state=seed)
-        predicted[:, d] = model.fit(x_train, y).predict(x_test)
+    model = lambda: MLPClassifier((128, 128), max_iter=400, random_state=seed)  # noqa: E731
+    predicted = fit_per_dimension(model, x_train, demo["y"], x_test)
     support = {tuple(a) for a in demo["y"]}
     in_support = np.array([tuple(a) in support for a in probe["y"]])
     hits = predicted == probe["y"]

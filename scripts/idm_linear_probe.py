@@ -19,6 +19,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 import lerobot_policy_jept  # noqa: F401  (registers the processors)
 from lerobot_jept.modeling_jept import PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.prompt_probe import ProbeConfig, load_labelled
+from scripts.idm_ceiling import fit_per_dimension
 
 
 @dataclass
@@ -73,13 +74,7 @@ def main() -> None:
     print("|---|" + "---:|" * len(names))
     for name, x in feats.items():
         x = (x - x[train].mean(0)) / (x[train].std(0) + 1e-6)
-        predicted = np.zeros_like(labels)
-        for d in range(labels.shape[1]):
-            y = labels[train, d]
-            if len(set(y)) == 1:  # a dimension the demos never move (the gripper of some tasks)
-                predicted[:, d] = y[0]
-                continue
-            predicted[:, d] = LogisticRegression(max_iter=2000).fit(x[train], y).predict(x)
+        predicted = fit_per_dimension(lambda: LogisticRegression(max_iter=2000), x[train], labels[train], x)
         hits = (predicted == labels).all(1)
         print(f"| {name} | " + " | ".join(f"{hits[(tasks == t) & ~train].mean():.2f}" for t in names) + " |")
 
