@@ -17,8 +17,10 @@ disjoint from everything else), or any labelled repo.
   JEPT also reports L_obs, the distance of its predicted next joint embeddings to the EMA targets.
 - Prompt swap. The same frames prompted by a scene-mate's bank prompt (tasks whose names share their first
   word, e.g. window-open / window-close; every other task for a repo without the builder's metadata): the
-  fraction of frames whose chosen action changes, and for JEPT the fraction whose L_obs rises (the predicted
-  next embedding follows the prompt, whether or not the action head reads the difference).
+  fraction of frames whose chosen action changes, the whole-action accuracy of the action chosen under the
+  wrong prompt (``swap_control_whole``, against ``control_whole`` with the task's own: what the right prompt
+  is worth), and for JEPT the fraction whose L_obs rises (the predicted next embedding follows the prompt,
+  whether or not the action head reads the difference).
 - Per split (T_demo / T_vid / T_unseen, from the build's metadata): the mean over tasks of each measure.
 
     jept-prompt-probe --policy.path=outputs/train/.../pretrained_model --dataset.repo_id=ORG/NAME_probe \\
@@ -195,6 +197,7 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
         prompts.update({m: bank.batch([bank.episodes(m)[0]]) for m in mates})
         outs: dict[str, list[torch.Tensor]] = {"labels": []}
         swaps = {key: {m: [] for m in mates} for key in ("swap_changed", "swap_raises_loss_obs")}
+        swapped_actions: dict[str, list[torch.Tensor]] = {m: [] for m in mates}
         for start in range(0, len(indices), cfg.batch_size):
             items = [dataset[i] for i in indices[start : start + cfg.batch_size]]
             batch = {
@@ -211,6 +214,7 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
             for key, value in outputs[task].items():
                 outs.setdefault(key, []).append((value.argmax(-1) if value.ndim == 3 else value).cpu())
             for m in mates:
+                swapped_actions[m].append(outputs[m]["control"].argmax(-1).cpu())
                 changed = (outputs[m]["control"].argmax(-1) != outputs[task]["control"].argmax(-1)).any(-1)
                 swaps["swap_changed"][m].append(changed.cpu())
                 if "loss_obs" in outputs[task]:
@@ -225,19 +229,25 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
             row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
         for key, per_mate in swaps.items():  # share of frames, per scene-mate
             row[key] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in per_mate.items() if v}
+        # the action chosen under the scene-mate's prompt, scored against this task's labels: how much the
+        # task's own prompt is worth over a wrong one of the same scene
+        row["swap_control_whole"] = {
+            names.get(m, m): bin_accuracy(torch.cat(v), labels)[0] for m, v in swapped_actions.items() if v
+        }
         results[task] = row
     return results
 
 
 SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
 ACTION_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
-MEASURES = (*ACTION_MEASURES, "nc_accuracy", "swap_changed")
+SWAP_MEASURES = ("swap_changed", "swap_control_whole")  # per scene-mate
+MEASURES = (*ACTION_MEASURES, "nc_accuracy", *SWAP_MEASURES)
 
 
 def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float], split: dict) -> dict:
     """Mean over each split's tasks (T_demo / T_vid / T_unseen) of every measure the rows carry, plus the
-    E_prt nearest-centroid accuracy and the share of frames whose action changes under a scene-mate's prompt
-    (tasks with a scene-mate only); splits without a probed task are left out."""
+    E_prt nearest-centroid accuracy, the share of frames whose action changes under a scene-mate's prompt and
+    the accuracy of that action (tasks with a scene-mate only); splits without a probed task are left out."""
     out = {}
     for key, tasks in split.items():
         present = [t for t in tasks if t in rows]
@@ -247,7 +257,7 @@ def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float]
         for measure in MEASURES:
             if measure == "nc_accuracy":
                 values = [separability_per_task[t] for t in present if t in separability_per_task]
-            elif measure == "swap_changed":
+            elif measure in SWAP_MEASURES:
                 values = [np.mean(list(swaps.values())) for t in present if (swaps := rows[t].get(measure))]
             else:
                 values = [rows[t][measure] for t in present if measure in rows[t]]
@@ -319,13 +329,15 @@ def markdown(results: dict) -> str:
         f"{sep['nearest_centroid_accuracy']:.3f}, spread {sep['spread']:.3f}",
         "",
         "| Task | E_prt NC acc | frames | control whole | control per-dim | inverse whole | inverse per-dim "
-        "| L_obs | prompt swap changes action (raises L_obs) |",
+        "| L_obs | prompt swap changes action (raises L_obs; control whole under the swap) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for task, row in results["actions"].items():
-        rises = row.get("swap_raises_loss_obs", {})
+        rises, scored = row.get("swap_raises_loss_obs", {}), row.get("swap_control_whole", {})
         swap = ", ".join(
-            f"{m}: {v:.2f}" + (f" ({rises[m]:.2f})" if m in rises else "")
+            f"{m}: {v:.2f} ("
+            + "; ".join(f"{x[m]:.2f}" if m in x and x[m] == x[m] else "-" for x in (rises, scored))
+            + ")"
             for m, v in row["swap_changed"].items()
         )
         swap = swap or "-"
@@ -336,12 +348,12 @@ def markdown(results: dict) -> str:
         lines += [
             "",
             "| Split | tasks | E_prt NC acc | control whole | control per-dim | inverse whole | inverse per-dim "
-            "| L_obs | prompt swap changes action |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| L_obs | prompt swap changes action | control whole under the swap |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, row in results["splits"].items():
             cells = [_cell(row.get("nc_accuracy"), 2)] + [_cell(row.get(k)) for k in ACTION_MEASURES]
-            cells.append(_cell(row.get("swap_changed"), 2))
+            cells += [_cell(row.get("swap_changed"), 2), _cell(row.get("swap_control_whole"))]
             lines.append(f"| {name} | {len(row['tasks'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

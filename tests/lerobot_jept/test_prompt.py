@@ -151,3 +151,5 @@ def test_prompt_separates_two_tasks_of_one_scene(one_scene, tmp_path):
     for task, row in rows.items():
         (mate,) = set(TASKS) - {task}
         assert row["swap_raises_loss_obs"][mate] >= 0.9, rows
+        # the swapped prompt's actions are scored on the same labels: they differ only where the action changed
+        assert abs(row["swap_control_whole"][mate] - row["control_whole"]) <= row["swap_changed"][mate] + 1e-6

@@ -168,12 +168,19 @@ def test_probe_accuracy_on_a_hand_checked_batch():
     assert all(math.isnan(v) for v in bin_accuracy(predicted[3:], labels[3:]))
     rows = {
         "a": {"control_whole": 0.5, "inverse_whole": 0.7, "loss_obs": 2.0},
-        "b": {"control_whole": 0.1, "inverse_whole": 0.3, "loss_obs": 4.0, "swap_changed": {"a": 0.2}},
+        "b": {
+            "control_whole": 0.1,
+            "inverse_whole": 0.3,
+            "loss_obs": 4.0,
+            "swap_changed": {"a": 0.2},
+            "swap_control_whole": {"a": 0.05},
+        },
         "b2": {
             "control_whole": 0.3,
             "inverse_whole": 0.5,
             "loss_obs": 6.0,
             "swap_changed": {"x": 0.4, "y": 0.6},
+            "swap_control_whole": {"x": 0.1, "y": 0.3},
         },
     }
     summary = split_summary(
@@ -183,6 +190,7 @@ def test_probe_accuracy_on_a_hand_checked_batch():
     assert summary["T_vid"]["control_whole"] == pytest.approx(0.2)
     assert summary["T_vid"]["loss_obs"] == pytest.approx(5.0) and summary["T_vid"]["nc_accuracy"] == 0.25
     assert summary["T_vid"]["swap_changed"] == pytest.approx((0.2 + 0.5) / 2)  # per task over its mates first
+    assert summary["T_vid"]["swap_control_whole"] == pytest.approx((0.05 + 0.2) / 2)
     assert "swap_changed" not in summary["T_demo"]  # a has no scene-mate
 
 
@@ -202,7 +210,7 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
             probe = {"T_vid": {"control_whole": n / 10, "control_per_dim": 0.5}}
             if method == "JEPT":
                 probe["T_vid"].update(inverse_whole=0.9, inverse_per_dim=0.95, loss_obs=1.5)
-                probe["T_vid"].update(nc_accuracy=1.0, swap_changed=n / 10)
+                probe["T_vid"].update(nc_accuracy=1.0, swap_changed=n / 10, swap_control_whole=0.1)
             results["prompt_probe"] = {"splits": probe}
             (folder / "results.json").write_text(json.dumps(results))
             runs.setdefault(method, []).append(str(folder))
@@ -212,7 +220,10 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
     # Success and accuracies are clipped to [0, 100]: 40 - 49.7 < 0.
     assert f"| T_vid | 40.0 [0.0, {40 + half:.1f}] | 0.0 [0.0, 0.0] |" in report
     assert f"| JEPT | T_vid | 40.0 [0.0, {40 + half:.1f}] | 50.0 [50.0, 50.0] | 90.0 " in report
-    assert f"| 1.500 [1.500, 1.500] | 100.0 [100.0, 100.0] | 40.0 [0.0, {40 + half:.1f}] |" in report
+    assert (
+        f"| 1.500 [1.500, 1.500] | 100.0 [100.0, 100.0] | 40.0 [0.0, {40 + half:.1f}] | 10.0 [10.0, 10.0] |"
+        in report
+    )
     assert "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - | - | - |" in report
     assert "compare/comparison.png" in report
 
