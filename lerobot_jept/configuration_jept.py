@@ -106,10 +106,6 @@ class JEPTConfig(PreTrainedConfig):
             ``prompt_swap_margin`` higher under the wrong prompt, so the predictor must read the prompt. Both
             terms train only Algorithm 1's second phase (prompt encoder, predictor, heads) after the prompt
             warm-up. Both weights 0 is the paper's objective exactly.
-        prompt_swap_action_weight: not in the paper; 0 (off) by default. L_act is also asked of the pass under
-            the other task's prompt (weight relative to L_act's): from the real next joint embeddings the action
-            does not depend on the task, so the inverse dynamics learns to read the next embedding rather than
-            the prompt, and the action head sees the video-only tasks' prompts with labels.
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
@@ -198,7 +194,6 @@ class JEPTConfig(PreTrainedConfig):
     prompt_align_temperature: float = 0.1
     prompt_swap_weight: float = 1.0
     prompt_swap_margin: float = 0.5
-    prompt_swap_action_weight: float = 0.0
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5
@@ -370,10 +365,10 @@ class BehaviourCloningConfig(JEPTConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.prompt_align_weight or self.prompt_swap_weight or self.prompt_swap_action_weight:
+        if self.prompt_align_weight or self.prompt_swap_weight:
             raise ValueError(
                 f"{self.type} has no joint embedding target, so JEPT's prompt terms cannot apply: drop "
-                "--policy.prompt_align_weight / --policy.prompt_swap_weight / --policy.prompt_swap_action_weight."
+                "--policy.prompt_align_weight / --policy.prompt_swap_weight."
             )
 
     @property

@@ -189,11 +189,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         zero = dist.new_zeros(dist.shape[0])
         if prompt is None or (self.training and self.phase == "encoder"):
             return zero, {}
-        if (
-            cfg.prompt_align_weight == 0
-            and cfg.prompt_swap_weight == 0
-            and cfg.prompt_swap_action_weight == 0
-        ):
+        if cfg.prompt_align_weight == 0 and cfg.prompt_swap_weight == 0:
             return zero, {}
         task_ids = self.task_ids(batch, dist.shape[0], dist.device)
         extra, info = zero, {}
@@ -201,27 +197,20 @@ class JEPTPolicy(DiscreteActionPolicy):
             align = m.prompt_align(prompt, targets, task_ids, cfg.prompt_align_temperature)
             extra = extra + cfg.prompt_align_weight * align
             info["loss_prompt_align"] = align.item()
-        if cfg.prompt_swap_weight > 0 or cfg.prompt_swap_action_weight > 0:
+        if cfg.prompt_swap_weight > 0:
             # Each sample with the prompt of the next sample of another task (none: no term for it).
             other = task_ids[None, :] != task_ids[:, None]
             n = len(task_ids)
             steps = torch.arange(n, device=dist.device)
             swap_to = torch.where(other, (steps[None, :] - steps[:, None]) % n, n).argmin(-1)
             has_other = other.any(-1).float()
-            pred_swapped, logits_swapped = m.predict(prompt[swap_to], obs, h_in)
-        if cfg.prompt_swap_weight > 0:
+            pred_swapped, _ = m.predict(prompt[swap_to], obs, h_in)
             dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
             gap = frame_mean(dist_swapped - dist, frame_ok)
             swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
             extra = extra + cfg.prompt_swap_weight * swap
             info["loss_prompt_swap"] = swap.mean().item()
             info["prompt_swap_gap"] = gap.mean().item()
-        if cfg.prompt_swap_action_weight > 0:
-            # From the real next embeddings the action does not depend on the task (inverse dynamics is shared
-            # across tasks, Section 3.2.2): the labels hold under the other task's prompt as well.
-            act_swapped, labelled = self.action_loss(logits_swapped, batch)
-            extra = extra + cfg.prompt_swap_action_weight * cfg.action_loss_weight * act_swapped * has_other
-            info["loss_act_swapped"] = self.labelled_mean(act_swapped, labelled).item()
         return extra, info
 
     @torch.no_grad()

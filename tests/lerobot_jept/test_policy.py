@@ -111,30 +111,6 @@ def test_paper_objective_without_the_prompt_losses(tiny_build, policy_and_batch)
     assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"], rel=1e-4)
 
 
-def test_swapped_prompt_action_loss(tiny_build, policy_and_batch):
-    """prompt_swap_action_weight asks L_act of the pass under another task's prompt too: on the same weights
-    the loss grows by c * weight * (its labelled mean) * (labelled samples / batch), as every sample here has
-    one of another task; off (the default), nothing of it runs."""
-    *_, batch = policy_and_batch
-    off = dict(prompt_align_weight=0.0, prompt_swap_weight=0.0)
-    base, _, _ = build_policy(tiny_build, **off)
-    policy, _, _ = build_policy(tiny_build, **off, prompt_swap_action_weight=0.5)
-    policy.load_state_dict(base.state_dict())
-    base.eval(), policy.eval()
-    loss0, info0 = base.forward(batch)
-    loss1, info1 = policy.forward(batch)
-    assert "loss_act_swapped" not in info0 and info1["loss_act_swapped"] > 0
-    assert len(set(batch["task_index"].tolist())) > 1
-    labels = batch["action"].clone()
-    labels[batch["action_is_pad"]] = IGNORE_INDEX
-    share = (labels != IGNORE_INDEX).any(-1).any(-1).float().mean().item()
-    expected = 8 * 0.5 * info1["loss_act_swapped"] * share
-    assert loss1.item() - loss0.item() == pytest.approx(expected, rel=1e-4)
-    assert info1["loss_act_swapped"] != pytest.approx(
-        info1["loss_act"], rel=1e-6
-    )  # the prompt reaches the actions
-
-
 def test_prompt_losses_train_only_the_second_phase(tiny_build, policy_and_batch):
     """The alignment reaches the prompt encoder and its projections, never the joint embedding encoder; the
     swap term needs a batch with two tasks, and its gap is L_obs under another task's prompt minus L_obs."""
