@@ -1,6 +1,6 @@
 """How well can inverse dynamics learned on the demo tasks alone act on the other tasks, from the true state?
 
-    python -m scripts.idm_ceiling --demo_repo_id=ORG/NAME_demo --probe_repo_id=ORG/NAME_probe
+    python -m scripts.idm_ceiling --demo_repo_id=ORG/NAME_demo --probe_repo_id=ORG/NAME_probe [--features=pixels]
 
 A property of the data, not of a checkpoint: JEPT's actions on a video-only task come from inverse dynamics
 learned on the demo tasks (P(a_t | o_t, o_t+1), Section 3.2). Per task of the labelled probe repo, this prints
@@ -9,7 +9,9 @@ learned on the demo tasks (P(a_t | o_t, o_t+1), Section 3.2). Per task of the la
   has never seen the others as a label);
 - the whole-action and per-dimension accuracy of an MLP inverse-dynamics model fitted on every frame of the demo
   repo, whose input is the true change of the self-state over the next ``--steps`` steps
-  (s_t+1 - s_t, ..., s_t+steps - s_t+steps-1), i.e. the best case of a perfect next-frame embedding.
+  (s_t+1 - s_t, ..., s_t+steps - s_t+steps-1), i.e. the best case of a perfect next-frame embedding;
+- with ``--features=pixels``, the same for a small CNN fitted on the camera frames o_t, ..., o_t+steps themselves
+  (the repo's resolution): what the images can tell of the action, before any embedding.
 
 On the demo tasks' own held-out episodes this is near 1; how far it falls on a video-only task bounds what any
 inverse dynamics fitted on these demos can reach there. Used in docs/prompt_collapse.md, section 7.
@@ -20,6 +22,7 @@ from pathlib import Path
 
 import draccus
 import numpy as np
+from tqdm import tqdm
 
 from lerobot_jept.discretization import to_bin_indices
 from lerobot_jept.prompt_probe import task_names
@@ -31,13 +34,18 @@ class CeilingConfig:
     probe_repo_id: str = ""  # labelled held-out repo it is scored on (a build's `_probe`)
     root: Path | None = None  # parent folder of both repos (default: $HF_LEROBOT_HOME)
     steps: int = 1  # self-state changes after t given to the model (1 = the next frame only)
+    features: str = "state"  # "state": the true self-state changes; "pixels": the frames, through a small CNN
+    epochs: int = 20  # CNN training epochs (pixels)
     num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
     seed: int = 0
 
 
-def load_frames(repo_id: str, root: Path | None, steps: int, num_bins: int) -> dict[str, np.ndarray]:
-    """Every frame t with ``steps`` frames after it in its episode: state changes, binned action, task (the
-    builder's task name where the repo has build metadata, else the task string)."""
+def load_frames(
+    repo_id: str, root: Path | None, steps: int, num_bins: int, features: str = "state"
+) -> dict[str, np.ndarray]:
+    """Every frame t with ``steps`` frames after it in its episode: state changes (or, for ``pixels``, the
+    uint8 frames o_t .. o_t+steps stacked on the channels), binned action, task (the builder's task name where
+    the repo has build metadata, else the task string)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
@@ -53,16 +61,26 @@ def load_frames(repo_id: str, root: Path | None, steps: int, num_bins: int) -> d
     table = dataset.hf_dataset.with_format("numpy")
     episode = table["episode_index"]
     state, action, task_index = table["observation.state"], table["action"], table["task_index"]
-    features, labels, frame_tasks = [], [], []
-    for ep in np.unique(episode):
+    image_key = next((k for k, f in dataset.meta.features.items() if f["dtype"] in ("video", "image")), None)
+    if features == "pixels" and image_key is None:
+        raise ValueError(f"{repo_id} has no camera frames: use --features=state.")
+    inputs, labels, frame_tasks = [], [], []
+    for ep in tqdm(np.unique(episode), desc=f"{repo_id} episodes", unit="ep", leave=False):
         rows = np.flatnonzero(episode == ep)
+        if features == "pixels":
+            images = np.stack([(dataset[int(r)][image_key].numpy() * 255).round() for r in rows]).astype(
+                np.uint8
+            )
         s = state[rows]
         delta = s[1:] - s[:-1]
         for t in range(len(rows) - steps):
-            features.append(delta[t : t + steps].reshape(-1))
+            if features == "pixels":
+                inputs.append(images[t : t + steps + 1].reshape(-1, *images.shape[2:]))
+            else:
+                inputs.append(delta[t : t + steps].reshape(-1))
             labels.append(to_bin_indices(action[rows[t]], num_bins))
             frame_tasks.append(task_of[int(task_index[rows[t]])])
-    return {"x": np.array(features), "y": np.array(labels), "task": np.array(frame_tasks)}
+    return {"x": np.array(inputs), "y": np.array(labels), "task": np.array(frame_tasks)}
 
 
 def fit_per_dimension(make_model, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray) -> np.ndarray:
@@ -78,15 +96,67 @@ def fit_per_dimension(make_model, x_train: np.ndarray, y_train: np.ndarray, x_te
     return predicted
 
 
-def ceiling(demo: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int = 0) -> dict[str, dict]:
-    """Per probe task: frames, share of frames whose whole action is in the demos' support, MLP accuracies."""
-    from sklearn.neural_network import MLPClassifier
-    from sklearn.preprocessing import StandardScaler
+def fit_cnn(
+    x_train: np.ndarray,
+    y_train: np.ndarray,
+    x_test: np.ndarray,
+    num_bins: int,
+    seed: int = 0,
+    epochs: int = 20,
+) -> np.ndarray:
+    """A small CNN (four stride-2 convolutions, one linear layer per action dimension's bins) fitted with
+    cross-entropy on uint8 frame stacks (N, C, H, W) -> (N_test, D) predicted bins."""
+    import torch
+    from torch import nn
 
-    scaler = StandardScaler().fit(demo["x"])
-    x_train, x_test = scaler.transform(demo["x"]), scaler.transform(probe["x"])
-    model = lambda: MLPClassifier((128, 128), max_iter=400, random_state=seed)  # noqa: E731
-    predicted = fit_per_dimension(model, x_train, demo["y"], x_test)
+    torch.manual_seed(seed)
+    dims = y_train.shape[1]
+    widths = [x_train.shape[1], 32, 64, 128, 128]
+    layers = [
+        m
+        for a, b in zip(widths[:-1], widths[1:], strict=True)
+        for m in (nn.Conv2d(a, b, 3, stride=2, padding=1), nn.ReLU())
+    ]
+    model = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Linear(128, dims * num_bins))
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+    images = lambda x: torch.from_numpy(x).float() / 255 - 0.5  # noqa: E731
+    labels = torch.from_numpy(y_train).long()
+    for _ in tqdm(range(epochs), desc="CNN epochs", unit="epoch", leave=False):
+        for batch in torch.randperm(len(x_train)).split(64):
+            logits = model(images(x_train[batch.numpy()])).view(-1, num_bins)
+            loss = nn.functional.cross_entropy(logits, labels[batch].view(-1))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    model.eval()
+    with torch.no_grad():
+        out = [
+            model(images(x_test[i : i + 256])).view(-1, dims, num_bins).argmax(-1)
+            for i in range(0, len(x_test), 256)
+        ]
+    return torch.cat(out).numpy()
+
+
+def ceiling(
+    demo: dict[str, np.ndarray],
+    probe: dict[str, np.ndarray],
+    seed: int = 0,
+    features: str = "state",
+    num_bins: int = 7,
+    epochs: int = 20,
+) -> dict[str, dict]:
+    """Per probe task: frames, share of frames whose whole action is in the demos' support, accuracies of the
+    inverse dynamics fitted on the demos (an MLP on state changes, or a CNN on the frames)."""
+    if features == "pixels":
+        predicted = fit_cnn(demo["x"], demo["y"], probe["x"], num_bins, seed, epochs)
+    else:
+        from sklearn.neural_network import MLPClassifier
+        from sklearn.preprocessing import StandardScaler
+
+        scaler = StandardScaler().fit(demo["x"])
+        x_train, x_test = scaler.transform(demo["x"]), scaler.transform(probe["x"])
+        model = lambda: MLPClassifier((128, 128), max_iter=400, random_state=seed)  # noqa: E731
+        predicted = fit_per_dimension(model, x_train, demo["y"], x_test)
     support = {tuple(a) for a in demo["y"]}
     in_support = np.array([tuple(a) in support for a in probe["y"]])
     hits = predicted == probe["y"]
@@ -102,9 +172,10 @@ def ceiling(demo: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int
     return out
 
 
-def markdown(results: dict[str, dict], demo_tasks: set[str]) -> str:
+def markdown(results: dict[str, dict], demo_tasks: set[str], features: str = "state") -> str:
+    name = "state" if features == "state" else "pixel"
     lines = [
-        "| task | in demos | frames | whole action in demo support | state-IDM whole | state-IDM per dim |",
+        f"| task | in demos | frames | whole action in demo support | {name}-IDM whole | {name}-IDM per dim |",
         "|---|---|---:|---:|---:|---|",
     ]
     for task, r in results.items():
@@ -124,9 +195,12 @@ def main() -> None:
         )
     if cfg.steps < 1:
         raise SystemExit(f"--steps must be at least 1 (the next frame), got {cfg.steps}.")
-    demo = load_frames(cfg.demo_repo_id, cfg.root, cfg.steps, cfg.num_bins)
-    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins)
-    print(markdown(ceiling(demo, probe, cfg.seed), set(demo["task"])))
+    if cfg.features not in ("state", "pixels"):
+        raise SystemExit(f"--features must be state or pixels, got {cfg.features!r}.")
+    demo = load_frames(cfg.demo_repo_id, cfg.root, cfg.steps, cfg.num_bins, cfg.features)
+    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins, cfg.features)
+    results = ceiling(demo, probe, cfg.seed, cfg.features, cfg.num_bins, cfg.epochs)
+    print(markdown(results, set(demo["task"]), cfg.features))
 
 
 if __name__ == "__main__":
