@@ -196,8 +196,8 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
         prompts = {task: bank.batch([bank.episodes(task)[0]])}
         prompts.update({m: bank.batch([bank.episodes(m)[0]]) for m in mates})
         outs: dict[str, list[torch.Tensor]] = {"labels": []}
-        swaps = {key: {m: [] for m in mates} for key in ("swap_changed", "swap_raises_loss_obs")}
         swapped_actions: dict[str, list[torch.Tensor]] = {m: [] for m in mates}
+        rises: dict[str, list[torch.Tensor]] = {m: [] for m in mates}
         for start in range(0, len(indices), cfg.batch_size):
             items = [dataset[i] for i in indices[start : start + cfg.batch_size]]
             batch = {
@@ -215,11 +215,8 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 outs.setdefault(key, []).append((value.argmax(-1) if value.ndim == 3 else value).cpu())
             for m in mates:
                 swapped_actions[m].append(outputs[m]["control"].argmax(-1).cpu())
-                changed = (outputs[m]["control"].argmax(-1) != outputs[task]["control"].argmax(-1)).any(-1)
-                swaps["swap_changed"][m].append(changed.cpu())
                 if "loss_obs" in outputs[task]:
-                    rises = outputs[m]["loss_obs"] > outputs[task]["loss_obs"]
-                    swaps["swap_raises_loss_obs"][m].append(rises.cpu())
+                    rises[m].append((outputs[m]["loss_obs"] > outputs[task]["loss_obs"]).cpu())
         labels = torch.cat(outs["labels"])
         row = {"task": names.get(task, task), "frames": int((labels >= 0).all(-1).sum())}
         for path in ("control", "inverse"):
@@ -227,12 +224,15 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 row[f"{path}_whole"], row[f"{path}_per_dim"] = bin_accuracy(torch.cat(outs[path]), labels)
         if "loss_obs" in outs:
             row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
-        for key, per_mate in swaps.items():  # share of frames, per scene-mate
-            row[key] = {names.get(m, m): float(torch.cat(v).float().mean()) for m, v in per_mate.items() if v}
-        # the action chosen under the scene-mate's prompt, scored against this task's labels: how much the
-        # task's own prompt is worth over a wrong one of the same scene
-        row["swap_control_whole"] = {
-            names.get(m, m): bin_accuracy(torch.cat(v), labels)[0] for m, v in swapped_actions.items() if v
+        # Per scene-mate: the share of frames whose chosen action changes under its prompt, the accuracy of
+        # that action against this task's labels (what the task's own prompt is worth over a wrong one of the
+        # same scene), and the share of frames whose L_obs rises.
+        own = torch.cat(outs["control"]) if mates else None
+        swapped = {names.get(m, m): torch.cat(v) for m, v in swapped_actions.items() if v}
+        row["swap_changed"] = {m: float((v != own).any(-1).float().mean()) for m, v in swapped.items()}
+        row["swap_control_whole"] = {m: bin_accuracy(v, labels)[0] for m, v in swapped.items()}
+        row["swap_raises_loss_obs"] = {
+            names.get(m, m): float(torch.cat(v).float().mean()) for m, v in rises.items() if v
         }
         results[task] = row
     return results
@@ -335,9 +335,7 @@ def markdown(results: dict) -> str:
     for task, row in results["actions"].items():
         rises, scored = row.get("swap_raises_loss_obs", {}), row.get("swap_control_whole", {})
         swap = ", ".join(
-            f"{m}: {v:.2f} ("
-            + "; ".join(f"{x[m]:.2f}" if m in x and x[m] == x[m] else "-" for x in (rises, scored))
-            + ")"
+            f"{m}: {v:.2f} ({_cell(rises.get(m), 2)}; {_cell(scored.get(m), 2)})"
             for m, v in row["swap_changed"].items()
         )
         swap = swap or "-"

@@ -67,17 +67,16 @@ def load_frames(
     inputs, labels, frame_tasks = [], [], []
     for ep in tqdm(np.unique(episode), desc=f"{repo_id} episodes", unit="ep", leave=False):
         rows = np.flatnonzero(episode == ep)
+        starts = range(len(rows) - steps)
         if features == "pixels":
             images = np.stack([(dataset[int(r)][image_key].numpy() * 255).round() for r in rows]).astype(
                 np.uint8
             )
-        s = state[rows]
-        delta = s[1:] - s[:-1]
-        for t in range(len(rows) - steps):
-            if features == "pixels":
-                inputs.append(images[t : t + steps + 1].reshape(-1, *images.shape[2:]))
-            else:
-                inputs.append(delta[t : t + steps].reshape(-1))
+            inputs += [images[t : t + steps + 1].reshape(-1, *images.shape[2:]) for t in starts]
+        else:
+            delta = np.diff(state[rows], axis=0)
+            inputs += [delta[t : t + steps].reshape(-1) for t in starts]
+        for t in starts:
             labels.append(to_bin_indices(action[rows[t]], num_bins))
             frame_tasks.append(task_of[int(task_index[rows[t]])])
     return {"x": np.array(inputs), "y": np.array(labels), "task": np.array(frame_tasks)}
