@@ -241,13 +241,32 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
 SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
 ACTION_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
 SWAP_MEASURES = ("swap_changed", "swap_control_whole")  # per scene-mate
-MEASURES = (*ACTION_MEASURES, "nc_accuracy", *SWAP_MEASURES)
+MEASURES = (*ACTION_MEASURES, "nc_accuracy", "nc_accuracy_trained", *SWAP_MEASURES)
+TRAINED_SPLITS = ("demo", "video")  # the tasks a policy trains on (labels or videos); "unseen" it never sees
 
 
-def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float], split: dict) -> dict:
+def trained_separability(embeddings: np.ndarray, labels: list[str], split: dict) -> dict | None:
+    """:func:`separability` over the prompts of the tasks the policy trained on (T_demo and T_vid) alone: an
+    unseen task's prompts were never asked to form a cluster of their own, so they can take a trained task's
+    nearest centroid (faucet-open's prompts among faucet-close's). None when no trained task was probed."""
+    trained = {t for key in TRAINED_SPLITS for t in split.get(key, [])}
+    keep = [i for i, t in enumerate(labels) if t in trained]
+    if not keep:
+        return None
+    return separability(embeddings[keep], [labels[i] for i in keep])
+
+
+def split_summary(
+    rows: dict[str, dict],
+    separability_per_task: dict[str, float],
+    split: dict,
+    trained_per_task: dict[str, float] | None = None,
+) -> dict:
     """Mean over each split's tasks (T_demo / T_vid / T_unseen) of every measure the rows carry, plus the
-    E_prt nearest-centroid accuracy, the share of frames whose action changes under a scene-mate's prompt and
+    E_prt nearest-centroid accuracy (over all probed tasks, and over the trained tasks alone where
+    ``trained_per_task`` is given), the share of frames whose action changes under a scene-mate's prompt and
     the accuracy of that action (tasks with a scene-mate only); splits without a probed task are left out."""
+    nc = {"nc_accuracy": separability_per_task, "nc_accuracy_trained": trained_per_task or {}}
     out = {}
     for key, tasks in split.items():
         present = [t for t in tasks if t in rows]
@@ -255,8 +274,8 @@ def split_summary(rows: dict[str, dict], separability_per_task: dict[str, float]
             continue
         summary = {"tasks": present}
         for measure in MEASURES:
-            if measure == "nc_accuracy":
-                values = [separability_per_task[t] for t in present if t in separability_per_task]
+            if measure in nc:
+                values = [nc[measure][t] for t in present if t in nc[measure]]
             elif measure in SWAP_MEASURES:
                 values = [np.mean(list(swaps.values())) for t in present if (swaps := rows[t].get(measure))]
             else:
@@ -299,7 +318,11 @@ def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> di
     if split is None and names is not None:
         split = json.loads((Path(meta.root) / "meta/jept_build.json").read_text())["split"]
     embeddings, prompt_tasks = prompt_embeddings(policy, dataset)
-    sep = separability(embeddings, [(names or {}).get(t, t) for t in prompt_tasks])
+    labels = [(names or {}).get(t, t) for t in prompt_tasks]
+    sep = separability(embeddings, labels)
+    trained = trained_separability(embeddings, labels, split) if split else None
+    if trained is not None:
+        sep["trained_tasks"] = trained
     actions = {row["task"]: row for row in action_measures(policy, pre, dataset, names, cfg).values()}
     results = {
         "policy": cfg.policy.path,
@@ -308,7 +331,11 @@ def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> di
         "prompt_bank": policy.config.prompt_repo_id,
         "prompt_separability": sep,
         "actions": actions,
-        "splits": split_summary(actions, sep["per_task_accuracy"], split) if split else {},
+        "splits": split_summary(
+            actions, sep["per_task_accuracy"], split, trained and trained["per_task_accuracy"]
+        )
+        if split
+        else {},
     }
     if cfg.output_dir is not None:
         out = Path(cfg.output_dir)
@@ -324,14 +351,23 @@ def _cell(value: float | None, digits: int = 3) -> str:
 
 def markdown(results: dict) -> str:
     sep = results["prompt_separability"]
-    lines = [
+    headline = (
         f"Prompt embedding E_prt on {sep['num_prompts']} held-out prompts: nearest-centroid accuracy "
-        f"{sep['nearest_centroid_accuracy']:.3f}, spread {sep['spread']:.3f}",
+        f"{sep['nearest_centroid_accuracy']:.3f}, spread {sep['spread']:.3f}"
+    )
+    if trained := sep.get("trained_tasks"):
+        headline += (
+            f"; over the {trained['num_prompts']} prompts of the trained tasks (T_demo and T_vid) alone: "
+            f"nearest-centroid accuracy {trained['nearest_centroid_accuracy']:.3f}"
+        )
+    lines = [
+        headline,
         "",
-        "| Task | E_prt NC acc | frames | control whole | control per-dim | inverse whole | inverse per-dim "
+        "| Task | E_prt NC acc | NC, trained tasks | frames | control whole | control per-dim | inverse whole | inverse per-dim "
         "| L_obs | prompt swap changes action (raises L_obs; control whole under the swap) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
+    trained_per_task = sep.get("trained_tasks", {}).get("per_task_accuracy", {})
     for task, row in results["actions"].items():
         rises, scored = row.get("swap_raises_loss_obs", {}), row.get("swap_control_whole", {})
         swap = ", ".join(
@@ -339,18 +375,20 @@ def markdown(results: dict) -> str:
             for m, v in row["swap_changed"].items()
         )
         swap = swap or "-"
-        cells = [_cell(sep["per_task_accuracy"].get(task), 2), str(row["frames"])]
+        cells = [_cell(sep["per_task_accuracy"].get(task), 2), _cell(trained_per_task.get(task), 2)]
+        cells.append(str(row["frames"]))
         cells += [_cell(row.get(k)) for k in ACTION_MEASURES]
         lines.append(f"| {task} | " + " | ".join(cells) + f" | {swap} |")
     if results.get("splits"):
         lines += [
             "",
-            "| Split | tasks | E_prt NC acc | control whole | control per-dim | inverse whole | inverse per-dim "
+            "| Split | tasks | E_prt NC acc | NC, trained tasks | control whole | control per-dim | inverse whole | inverse per-dim "
             "| L_obs | prompt swap changes action | control whole under the swap |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, row in results["splits"].items():
-            cells = [_cell(row.get("nc_accuracy"), 2)] + [_cell(row.get(k)) for k in ACTION_MEASURES]
+            cells = [_cell(row.get(k), 2) for k in ("nc_accuracy", "nc_accuracy_trained")]
+            cells += [_cell(row.get(k)) for k in ACTION_MEASURES]
             cells += [_cell(row.get("swap_changed"), 2), _cell(row.get("swap_control_whole"))]
             lines.append(f"| {name} | {len(row['tasks'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -533,8 +533,9 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
         return "", {}
     lines = [
         "| Method | Split | control whole (%) | control per-dim (%) | inverse whole (%) | inverse per-dim (%) "
-        "| L_obs | E_prt NC (%) | prompt swap changes action (%) | control whole under the swap (%) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| L_obs | E_prt NC (%) | E_prt NC, trained tasks (%) | prompt swap changes action (%) "
+        "| control whole under the swap (%) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     summary: dict = {}
     for method, groups in values.items():
@@ -690,9 +691,9 @@ def write_report(cfg: StudyConfig) -> Path:
                 "Offline probe on the held-out `_probe` repo (action-bin accuracy of a_t: `control` = the action "
                 "the policy would choose, `inverse` = JEPT's inverse dynamics from the real next frame; L_obs = "
                 "JEPT's next-embedding error; E_prt NC = nearest-centroid accuracy of the prompt embedding over the "
-                "tasks, held-out prompts; prompt swap = share of frames whose chosen action changes when the task's "
-                "prompt is replaced by its scene-mate's, and the accuracy of the action then chosen), mean [95% interval] "
-                "over seeds:",
+                "tasks, held-out prompts, among all tasks and among the trained (demo and video) tasks alone; "
+                "prompt swap = share of frames whose chosen action changes when the task's prompt is replaced by "
+                "its scene-mate's, and the accuracy of the action then chosen), mean [95% interval] over seeds:",
                 "",
                 probe,
             ]

@@ -30,6 +30,7 @@ from lerobot_jept.prompt_probe import (
     run_probe,
     scene_key,
     separability,
+    trained_separability,
 )
 from lerobot_jept.suite import DatasetArg, PolicyArg
 
@@ -126,6 +127,21 @@ def test_separability_measures():
     assert separability(mixed, labels)["nearest_centroid_accuracy"] < 0.9
     assert scene_key("window-open-v3") == scene_key("window-close-v3") != scene_key("reach-v3")
     assert scene_key("sawyer-lift") == scene_key("panda-lift")
+
+
+def test_trained_separability_leaves_out_the_unseen_tasks_prompts():
+    # Trained tasks a and b apart; the unseen task c's prompts sit on b's: over all tasks b and c are mixed up,
+    # over the trained tasks alone every prompt finds its own centroid.
+    rng = np.random.default_rng(0)
+    embeddings = np.concatenate([rng.normal(0, 1, (4, 3)) + 10, rng.normal(0, 1, (8, 3)) - 10])
+    labels = ["a"] * 4 + ["b"] * 4 + ["c"] * 4
+    split = {"demo": ["a"], "video": ["b"], "unseen": ["c"]}
+    everything = separability(embeddings, labels)
+    assert everything["per_task_accuracy"]["a"] == 1.0 and everything["nearest_centroid_accuracy"] < 0.9
+    trained = trained_separability(embeddings, labels, split)
+    assert trained["num_prompts"] == 8 and trained["nearest_centroid_accuracy"] == 1.0
+    assert set(trained["per_task_accuracy"]) == {"a", "b"}
+    assert trained_separability(embeddings[8:], labels[8:], split) is None  # no trained task probed
 
 
 @pytest.mark.slow

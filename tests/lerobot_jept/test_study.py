@@ -184,11 +184,15 @@ def test_probe_accuracy_on_a_hand_checked_batch():
         },
     }
     summary = split_summary(
-        rows, {"a": 1.0, "b": 0.5, "b2": 0.0}, {"demo": ["a"], "video": ["b", "b2"], "unseen": ["c"]}
+        rows,
+        {"a": 1.0, "b": 0.5, "b2": 0.0},
+        {"demo": ["a"], "video": ["b", "b2"], "unseen": ["c"]},
+        {"a": 1.0, "b": 1.0, "b2": 0.5},
     )
     assert list(summary) == ["T_demo", "T_vid"]  # no probed unseen task
     assert summary["T_vid"]["control_whole"] == pytest.approx(0.2)
     assert summary["T_vid"]["loss_obs"] == pytest.approx(5.0) and summary["T_vid"]["nc_accuracy"] == 0.25
+    assert summary["T_vid"]["nc_accuracy_trained"] == 0.75
     assert summary["T_vid"]["swap_changed"] == pytest.approx((0.2 + 0.5) / 2)  # per task over its mates first
     assert summary["T_vid"]["swap_control_whole"] == pytest.approx((0.05 + 0.2) / 2)
     assert "swap_changed" not in summary["T_demo"]  # a has no scene-mate
@@ -210,7 +214,8 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
             probe = {"T_vid": {"control_whole": n / 10, "control_per_dim": 0.5}}
             if method == "JEPT":
                 probe["T_vid"].update(inverse_whole=0.9, inverse_per_dim=0.95, loss_obs=1.5)
-                probe["T_vid"].update(nc_accuracy=1.0, swap_changed=n / 10, swap_control_whole=0.1)
+                probe["T_vid"].update(nc_accuracy=1.0, nc_accuracy_trained=0.9)
+                probe["T_vid"].update(swap_changed=n / 10, swap_control_whole=0.1)
             results["prompt_probe"] = {"splits": probe}
             (folder / "results.json").write_text(json.dumps(results))
             runs.setdefault(method, []).append(str(folder))
@@ -221,10 +226,10 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
     assert f"| T_vid | 40.0 [0.0, {40 + half:.1f}] | 0.0 [0.0, 0.0] |" in report
     assert f"| JEPT | T_vid | 40.0 [0.0, {40 + half:.1f}] | 50.0 [50.0, 50.0] | 90.0 " in report
     assert (
-        f"| 1.500 [1.500, 1.500] | 100.0 [100.0, 100.0] | 40.0 [0.0, {40 + half:.1f}] | 10.0 [10.0, 10.0] |"
-        in report
+        f"| 1.500 [1.500, 1.500] | 100.0 [100.0, 100.0] | 90.0 [90.0, 90.0] | 40.0 [0.0, {40 + half:.1f}] "
+        "| 10.0 [10.0, 10.0] |" in report
     )
-    assert "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - | - | - |" in report
+    assert "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - | - | - | - |" in report
     assert "compare/comparison.png" in report
 
 
