@@ -324,6 +324,7 @@ def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> di
     if trained is not None:
         sep["trained_tasks"] = trained
     actions = {row["task"]: row for row in action_measures(policy, pre, dataset, names, cfg).values()}
+    trained_per_task = trained["per_task_accuracy"] if trained else None
     results = {
         "policy": cfg.policy.path,
         "policy_type": policy.config.type,
@@ -331,11 +332,7 @@ def run_probe(cfg: ProbeConfig, split: dict[str, list[str]] | None = None) -> di
         "prompt_bank": policy.config.prompt_repo_id,
         "prompt_separability": sep,
         "actions": actions,
-        "splits": split_summary(
-            actions, sep["per_task_accuracy"], split, trained and trained["per_task_accuracy"]
-        )
-        if split
-        else {},
+        "splits": split_summary(actions, sep["per_task_accuracy"], split, trained_per_task) if split else {},
     }
     if cfg.output_dir is not None:
         out = Path(cfg.output_dir)
@@ -363,8 +360,8 @@ def markdown(results: dict) -> str:
     lines = [
         headline,
         "",
-        "| Task | E_prt NC acc | NC, trained tasks | frames | control whole | control per-dim | inverse whole | inverse per-dim "
-        "| L_obs | prompt swap changes action (raises L_obs; control whole under the swap) |",
+        "| Task | E_prt NC acc | NC, trained tasks | frames | control whole | control per-dim | inverse whole "
+        "| inverse per-dim | L_obs | prompt swap changes action (raises L_obs; control whole under the swap) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     trained_per_task = sep.get("trained_tasks", {}).get("per_task_accuracy", {})
@@ -382,8 +379,8 @@ def markdown(results: dict) -> str:
     if results.get("splits"):
         lines += [
             "",
-            "| Split | tasks | E_prt NC acc | NC, trained tasks | control whole | control per-dim | inverse whole | inverse per-dim "
-            "| L_obs | prompt swap changes action | control whole under the swap |",
+            "| Split | tasks | E_prt NC acc | NC, trained tasks | control whole | control per-dim | inverse whole "
+            "| inverse per-dim | L_obs | prompt swap changes action | control whole under the swap |",
             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, row in results["splits"].items():
