@@ -248,10 +248,11 @@ TRAINED_SPLITS = ("demo", "video")  # the tasks a policy trains on (labels or vi
 def trained_separability(embeddings: np.ndarray, labels: list[str], split: dict) -> dict | None:
     """:func:`separability` over the prompts of the tasks the policy trained on (T_demo and T_vid) alone: an
     unseen task's prompts were never asked to form a cluster of their own, so they can take a trained task's
-    nearest centroid (faucet-open's prompts among faucet-close's). None when no trained task was probed."""
+    nearest centroid (faucet-open's prompts among faucet-close's). None when fewer than two trained tasks were
+    probed (nothing to tell apart)."""
     trained = {t for key in TRAINED_SPLITS for t in split.get(key, [])}
     keep = [i for i, t in enumerate(labels) if t in trained]
-    if not keep:
+    if len({labels[i] for i in keep}) < 2:
         return None
     return separability(embeddings[keep], [labels[i] for i in keep])
 

@@ -150,6 +150,7 @@ def test_eval_suite_writes_table_and_chart(trained):
     probe = results["prompt_probe"]  # on the build's probe repo: one held-out episode of every task
     assert probe["dataset"] == "test/mw_tiny_probe"
     assert probe["prompt_separability"]["num_prompts"] == 4
+    assert probe["prompt_separability"]["trained_tasks"]["num_prompts"] == 3  # the unseen task's left out
     assert set(probe["actions"]) == {"button-press-v3", "reach-v3", "drawer-close-v3", "handle-press-v3"}
     for row in probe["actions"].values():
         assert 0 <= row["control_whole"] <= row["control_per_dim"] <= 1

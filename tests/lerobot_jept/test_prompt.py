@@ -142,6 +142,7 @@ def test_trained_separability_leaves_out_the_unseen_tasks_prompts():
     assert trained["num_prompts"] == 8 and trained["nearest_centroid_accuracy"] == 1.0
     assert set(trained["per_task_accuracy"]) == {"a", "b"}
     assert trained_separability(embeddings[8:], labels[8:], split) is None  # no trained task probed
+    assert trained_separability(embeddings[4:], labels[4:], split) is None  # one: nothing to tell apart
 
 
 @pytest.mark.slow
