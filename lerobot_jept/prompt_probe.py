@@ -7,7 +7,8 @@ disjoint from everything else), or any labelled repo.
 - Prompt separability. Every episode of the repo is a held-out prompt: its frames, subsampled to the policy's
   ``max_prompt_length``, go through the prompt encoder to E_prt (N_prt x D, flattened). Reported: leave-one-out
   nearest-centroid accuracy over tasks (each prompt against the centroid of the other prompts of its own task
-  and the centroids of the other tasks), per task and overall, and the spread (mean over dimensions of the
+  and the centroids of the other tasks), per task and overall, once over every task of the repo and once over
+  the tasks the policy trained on (T_demo and T_vid, from the build's metadata) alone, and the spread (mean over dimensions of the
   standard deviation across prompts, divided by the mean absolute value; a prompt embedding collapsed to a
   constant has spread ~0).
 - Action accuracy. On up to ``frames_per_episode`` frames of every episode, the action-bin accuracy (whole
