@@ -8,9 +8,9 @@ disjoint from everything else), or any labelled repo.
   ``max_prompt_length``, go through the prompt encoder to E_prt (N_prt x D, flattened). Reported: leave-one-out
   nearest-centroid accuracy over tasks (each prompt against the centroid of the other prompts of its own task
   and the centroids of the other tasks), per task and overall, once over every task of the repo and once over
-  the tasks the policy trained on (T_demo and T_vid, from the build's metadata) alone, and the spread (mean over dimensions of the
-  standard deviation across prompts, divided by the mean absolute value; a prompt embedding collapsed to a
-  constant has spread ~0).
+  the tasks the policy trained on (T_demo and T_vid, from the build's metadata) alone, and the spread (mean
+  over dimensions of the standard deviation across prompts, divided by the mean absolute value; a prompt
+  embedding collapsed to a constant has spread ~0).
 - Action accuracy. On up to ``frames_per_episode`` frames of every episode, the action-bin accuracy (whole
   action and per dimension) of a_t for the last context frame, prompted by the task's first bank prompt:
   ``control`` is the action ``select_action`` would choose (for JEPT: from the predicted h_{t+1});
