@@ -104,6 +104,14 @@ def _mt1_task(task: str):
     return mt1.train_classes[task], mt1.train_tasks[0]
 
 
+@cache
+def scripted_expert(task: str):
+    """Meta-World's scripted policy for ``task`` (the one LeRobot's Meta-World config maps it to)."""
+    import metaworld.policies
+
+    return getattr(metaworld.policies, _lerobot_metaworld_config()["TASK_POLICY_MAPPING"][task])()
+
+
 class JeptMetaworldEnv(spec.OneImagePerState):
     """A Meta-World task under the JEPT protocol.
 
@@ -152,8 +160,6 @@ class JeptMetaworldEnv(spec.OneImagePerState):
         if self._env is not None:
             return
         setup_offscreen_gl()
-        import metaworld.policies
-
         env_class, first_task = _mt1_task(self.task)
         env = env_class(
             render_mode="rgb_array", camera_name=CAMERA_NAME, width=self.image_size, height=self.image_size
@@ -170,8 +176,7 @@ class JeptMetaworldEnv(spec.OneImagePerState):
 
             self._viewer.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             self._viewer.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        policy_name = _lerobot_metaworld_config()["TASK_POLICY_MAPPING"][self.task]
-        self._expert = getattr(metaworld.policies, policy_name)()
+        self._expert = scripted_expert(self.task)
         self._env = env
         # Free the GL context before mujoco.egl's own exit handler (registered on first use, so it runs
         # after this one) terminates the display; freeing it later raises EGL errors at exit.
@@ -215,10 +220,12 @@ class JeptMetaworldEnv(spec.OneImagePerState):
         info = {"is_success": success, "task": self.task}
         return self._observation(), reward, success, truncated, info
 
-    def expert_action(self) -> np.ndarray:
-        """The task's scripted expert action (continuous) for the current state."""
+    def expert_action(self, task: str | None = None) -> np.ndarray:
+        """The scripted expert action (continuous) for the current state: the env's own task's expert, or
+        ``task``'s (e.g. a scene-mate's: what that task's expert would do from here)."""
         self._ensure_env()
-        return np.asarray(self._expert.get_action(self._raw_obs), dtype=np.float32)
+        expert = self._expert if task is None or task == self.task else scripted_expert(check_task(task))
+        return np.asarray(expert.get_action(self._raw_obs), dtype=np.float32)
 
     def close(self) -> None:
         if self._env is not None:
