@@ -106,12 +106,6 @@ class JEPTConfig(PreTrainedConfig):
             ``prompt_swap_margin`` higher under the wrong prompt, so the predictor must read the prompt. Both
             terms train only Algorithm 1's second phase (prompt encoder, predictor, heads) after the prompt
             warm-up. Both weights 0 is the paper's objective exactly.
-        prompt_swap_unlikelihood_weight: not in the paper (default 0, off). On labelled samples, the action
-            chosen as ``select_action`` chooses it (from h_{t+1} predicted under the prompt) is also computed under
-            the other task's prompt of the swap term, and an unlikelihood term -log(1 - p) lowers the
-            probability p of the sample's own whole labelled action there: a scene-mate's prompt should not
-            lead to this task's action. Same phase and warm-up as the other prompt terms; one more predictor
-            pass per step.
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
@@ -200,7 +194,6 @@ class JEPTConfig(PreTrainedConfig):
     prompt_align_temperature: float = 0.1
     prompt_swap_weight: float = 1.0
     prompt_swap_margin: float = 0.5
-    prompt_swap_unlikelihood_weight: float = 0.0
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5

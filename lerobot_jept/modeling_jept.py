@@ -189,8 +189,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         zero = dist.new_zeros(dist.shape[0])
         if prompt is None or (self.training and self.phase == "encoder"):
             return zero, {}
-        swap_terms = cfg.prompt_swap_weight > 0 or cfg.prompt_swap_unlikelihood_weight > 0
-        if cfg.prompt_align_weight == 0 and not swap_terms:
+        if cfg.prompt_align_weight == 0 and cfg.prompt_swap_weight == 0:
             return zero, {}
         task_ids = self.task_ids(batch, dist.shape[0], dist.device)
         extra, info = zero, {}
@@ -198,46 +197,21 @@ class JEPTPolicy(DiscreteActionPolicy):
             align = m.prompt_align(prompt, targets, task_ids, cfg.prompt_align_temperature)
             extra = extra + cfg.prompt_align_weight * align
             info["loss_prompt_align"] = align.item()
-        if not swap_terms:
-            return extra, info
-        # Each sample with the prompt of the next sample of another task (none: no term for it).
-        other = task_ids[None, :] != task_ids[:, None]
-        n = len(task_ids)
-        steps = torch.arange(n, device=dist.device)
-        swap_to = torch.where(other, (steps[None, :] - steps[:, None]) % n, n).argmin(-1)
-        has_other = other.any(-1).float()
-        pred_swapped, _ = m.predict(prompt[swap_to], obs, h_in)
         if cfg.prompt_swap_weight > 0:
+            # Each sample with the prompt of the next sample of another task (none: no term for it).
+            other = task_ids[None, :] != task_ids[:, None]
+            n = len(task_ids)
+            steps = torch.arange(n, device=dist.device)
+            swap_to = torch.where(other, (steps[None, :] - steps[:, None]) % n, n).argmin(-1)
+            has_other = other.any(-1).float()
+            pred_swapped, _ = m.predict(prompt[swap_to], obs, h_in)
             dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
             gap = frame_mean(dist_swapped - dist, frame_ok)
             swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
             extra = extra + cfg.prompt_swap_weight * swap
             info["loss_prompt_swap"] = swap.mean().item()
             info["prompt_swap_gap"] = gap.mean().item()
-        if cfg.prompt_swap_unlikelihood_weight > 0:
-            unlikely, p_own = self._swap_unlikelihood(
-                batch, prompt, obs, h_in, pred_swapped[:, -1:], has_other
-            )
-            extra = extra + cfg.prompt_swap_unlikelihood_weight * unlikely
-            info["loss_prompt_swap_unlikelihood"] = unlikely.mean().item()
-            info["swap_p_own_action"] = p_own
         return extra, info
-
-    def _swap_unlikelihood(self, batch, prompt, obs, h_in, h_wrong, has_other) -> tuple[Tensor, float]:
-        """Per sample (B,): -log(1 - p), p the probability of the sample's own whole labelled action a_t when
-        the inverse dynamics (own prompt, real context) is given h_wrong, the h_{t+1} predicted under another
-        task's prompt, as the next embedding; 0 for unlabelled samples and samples without another task in
-        the batch. Also the mean p over those counted."""
-        m, k = self.model, self.config.n_obs_steps
-        _, logits = m.predict(prompt, obs, torch.cat([h_in[:, : k - 1], h_wrong], 1))
-        logits = logits[:, -1:]  # (B, 1, A, bins): a_t
-        labels = self.action_labels(batch, (obs.shape[0], k, logits.shape[2]))[:, -1:]
-        counted = (labels[:, 0, 0] != IGNORE_INDEX).float() * has_other
-        log_p = logits.log_softmax(-1).gather(-1, labels.clamp_min(0)[..., None]).squeeze(-1).sum((1, 2))
-        p = log_p.exp().clamp(max=1 - 1e-6)
-        unlikely = -torch.log1p(-p) * counted
-        p_mean = float((p.detach() * counted).sum() / counted.sum().clamp_min(1))
-        return unlikely, p_mean
 
     @torch.no_grad()
     def _targets(self, batch: dict[str, Tensor], tokens: Tensor) -> Tensor:

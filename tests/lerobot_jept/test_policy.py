@@ -131,46 +131,6 @@ def test_prompt_losses_train_only_the_second_phase(tiny_build, policy_and_batch)
     assert len(set(batch["task_index"].tolist())) > 1 and info["loss_prompt_align"] > 0
 
 
-def test_swap_unlikelihood_lowers_the_own_action_given_another_tasks_prediction(tiny_build, policy_and_batch):
-    """prompt_swap_unlikelihood_weight: -log(1 - p) per labelled sample, p the probability of its own whole
-    labelled a_t when the inverse dynamics (own prompt, real context) is given the h_{t+1} predicted under the
-    prompt of the next sample of another task; unlabelled samples add nothing, and the term adds to the loss
-    with its weight."""
-    *_, batch = policy_and_batch
-    policy, _, _ = build_policy(tiny_build, prompt_swap_unlikelihood_weight=2.0)
-    policy.eval()
-    loss, info = policy.forward(batch)
-    others = info["loss_prompt_align"] + info["loss_prompt_swap"]
-    expected_loss = (
-        info["loss_obs"] + 8 * info["loss_act"] + others + 2 * info["loss_prompt_swap_unlikelihood"]
-    )
-    assert loss.item() == pytest.approx(expected_loss, rel=1e-4)
-
-    m, k = policy.model, policy.config.n_obs_steps
-    tasks = batch["task_index"].tolist()
-    swap_to = [next(j % 8 for j in range(i + 1, i + 9) if tasks[j % 8] != tasks[i]) for i in range(8)]
-    with torch.no_grad():
-        _, obs, h_in = policy._encode_window(batch)
-        prompt = policy.prompt(batch)
-        z_next_wrong = m.predictor.forward_last_step(
-            prompt[swap_to], obs[:, :k], h_in[:, : k - 1], m.obs_head
-        )
-        h_wrong = m.obs_head(m.predictor(prompt[swap_to], obs[:, :k], h_in)[0][:, -1])  # from o_t's state
-        _, logits = m.predict(prompt, obs[:, :k], torch.cat([h_in[:, : k - 1], h_wrong[:, None]], 1))
-        log_probs = logits[:, -1].log_softmax(-1)  # (B, A, bins)
-    assert not torch.allclose(log_probs, m.action_head(z_next_wrong[:, None])[:, 0].log_softmax(-1))
-    terms = []
-    for i in range(8):
-        label = batch["action"][i, -1]
-        if (label == IGNORE_INDEX).any() or batch["action_is_pad"][i, -1]:
-            terms.append(0.0)  # a video frame: no label, no term
-            continue
-        p = log_probs[i, torch.arange(4), label].sum().exp().item()
-        terms.append(-torch.log1p(torch.tensor(-p)).item())
-    assert sum(t > 0 for t in terms) >= 2 and terms.count(0.0) >= 2
-    assert info["loss_prompt_swap_unlikelihood"] == pytest.approx(sum(terms) / 8, rel=1e-4)
-
-
 def test_unlabelled_and_padded_actions_contribute_nothing(policy_and_batch):
     policy, _, _, batch = policy_and_batch
     policy.eval()
