@@ -225,12 +225,14 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 row[f"{path}_whole"], row[f"{path}_per_dim"] = bin_accuracy(torch.cat(outs[path]), labels)
         if "loss_obs" in outs:
             row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
-        # Per scene-mate: the share of frames whose chosen action changes under its prompt, the accuracy of
-        # that action against this task's labels (what the task's own prompt is worth over a wrong one of the
-        # same scene), and the share of frames whose L_obs rises.
+        # Per scene-mate: the share of frames whose chosen action changes under its prompt (and per action
+        # dimension, to set against scripts/expert_swap_ceiling.py's experts), the accuracy of that action
+        # against this task's labels (what the task's own prompt is worth over a wrong one of the same scene),
+        # and the share of frames whose L_obs rises.
         own = torch.cat(outs["control"]) if mates else None
         swapped = {names.get(m, m): torch.cat(v) for m, v in swapped_actions.items() if v}
         row["swap_changed"] = {m: float((v != own).any(-1).float().mean()) for m, v in swapped.items()}
+        row["swap_changed_per_dim"] = {m: (v != own).float().mean(0).tolist() for m, v in swapped.items()}
         row["swap_control_whole"] = {m: bin_accuracy(v, labels)[0] for m, v in swapped.items()}
         row["swap_raises_loss_obs"] = {
             names.get(m, m): float(torch.cat(v).float().mean()) for m, v in rises.items() if v

@@ -170,3 +170,6 @@ def test_prompt_separates_two_tasks_of_one_scene(one_scene, tmp_path):
         assert row["swap_raises_loss_obs"][mate] >= 0.9, rows
         # the swapped prompt's actions are scored on the same labels: they differ only where the action changed
         assert abs(row["swap_control_whole"][mate] - row["control_whole"]) <= row["swap_changed"][mate] + 1e-6
+        # a frame's action changes where any of its dimensions does
+        per_dim, whole = row["swap_changed_per_dim"][mate], row["swap_changed"][mate]
+        assert len(per_dim) == 2 and max(per_dim) <= whole + 1e-6 and whole <= sum(per_dim) + 1e-6
