@@ -212,6 +212,12 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 processed = pre(given)
                 outputs[name] = policy.offline_outputs(processed)
             outs["labels"].append(processed[ACTION][:, -1].cpu())
+            if processed[ACTION].shape[1] > 1:  # a_{t-1}, where the episode has one (not padded)
+                previous = processed[ACTION][:, -2].clone()
+                pad = processed.get(f"{ACTION}_is_pad")
+                if pad is not None:
+                    previous[pad[:, -2]] = -1
+                outs.setdefault("previous", []).append(previous.cpu())
             for key, value in outputs[task].items():
                 outs.setdefault(key, []).append((value.argmax(-1) if value.ndim == 3 else value).cpu())
             for m in mates:
@@ -225,6 +231,10 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
                 row[f"{path}_whole"], row[f"{path}_per_dim"] = bin_accuracy(torch.cat(outs[path]), labels)
         if "loss_obs" in outs:
             row["loss_obs"] = float(torch.cat(outs["loss_obs"]).mean())
+        if "previous" in outs:  # the reference of smooth experts: a_t scored as if it were a_{t-1}
+            previous = torch.cat(outs["previous"])
+            has_previous = (previous >= 0).all(-1, keepdim=True)
+            row["previous_whole"] = bin_accuracy(previous, torch.where(has_previous, labels, -1))[0]
         # Per scene-mate: the share of frames whose chosen action changes under its prompt (and per action
         # dimension, to set against scripts/expert_swap_ceiling.py's experts), the accuracy of that action
         # against this task's labels (what the task's own prompt is worth over a wrong one of the same scene),
@@ -242,7 +252,14 @@ def action_measures(policy, pre, dataset, names: dict[str, str] | None, cfg: Pro
 
 
 SPLIT_NAMES = {"demo": "T_demo", "video": "T_vid", "unseen": "T_unseen"}
-ACTION_MEASURES = ("control_whole", "control_per_dim", "inverse_whole", "inverse_per_dim", "loss_obs")
+ACTION_MEASURES = (
+    "control_whole",
+    "control_per_dim",
+    "inverse_whole",
+    "inverse_per_dim",
+    "loss_obs",
+    "previous_whole",  # labelled a_t equal to a_{t-1}: what repeating the last action scores
+)
 SWAP_MEASURES = ("swap_changed", "swap_control_whole")  # per scene-mate
 MEASURES = (*ACTION_MEASURES, "nc_accuracy", "nc_accuracy_trained", *SWAP_MEASURES)
 TRAINED_SPLITS = ("demo", "video")  # the tasks a policy trains on (labels or videos); "unseen" it never sees
@@ -365,8 +382,9 @@ def markdown(results: dict) -> str:
         headline,
         "",
         "| Task | E_prt NC acc | NC, trained tasks | frames | control whole | control per-dim | inverse whole "
-        "| inverse per-dim | L_obs | prompt swap changes action (raises L_obs; control whole under the swap) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| inverse per-dim | L_obs | a_{t-1} repeated, whole | prompt swap changes action (raises L_obs; control "
+        "whole under the swap) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     trained_per_task = sep.get("trained_tasks", {}).get("per_task_accuracy", {})
     for task, row in results["actions"].items():
@@ -384,8 +402,9 @@ def markdown(results: dict) -> str:
         lines += [
             "",
             "| Split | tasks | E_prt NC acc | NC, trained tasks | control whole | control per-dim | inverse whole "
-            "| inverse per-dim | L_obs | prompt swap changes action | control whole under the swap |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| inverse per-dim | L_obs | a_{t-1} repeated, whole | prompt swap changes action | control whole under "
+            "the swap |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for name, row in results["splits"].items():
             cells = [_cell(row.get(k), 2) for k in ("nc_accuracy", "nc_accuracy_trained")]

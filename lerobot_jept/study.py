@@ -533,9 +533,9 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
         return "", {}
     lines = [
         "| Method | Split | control whole (%) | control per-dim (%) | inverse whole (%) | inverse per-dim (%) "
-        "| L_obs | E_prt NC (%) | E_prt NC, trained tasks (%) | prompt swap changes action (%) "
-        "| control whole under the swap (%) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| L_obs | a_{t-1} repeated, whole (%) | E_prt NC (%) | E_prt NC, trained tasks (%) "
+        "| prompt swap changes action (%) | control whole under the swap (%) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     summary: dict = {}
     for method, groups in values.items():

@@ -171,5 +171,8 @@ def test_prompt_separates_two_tasks_of_one_scene(one_scene, tmp_path):
         # the swapped prompt's actions are scored on the same labels: they differ only where the action changed
         assert abs(row["swap_control_whole"][mate] - row["control_whole"]) <= row["swap_changed"][mate] + 1e-6
         # a frame's action changes where any of its dimensions does
+        assert (
+            row["previous_whole"] == 1.0
+        )  # each episode holds one action: a_t is a_{t-1} wherever it has one
         per_dim, whole = row["swap_changed_per_dim"][mate], row["swap_changed"][mate]
         assert len(per_dim) == 2 and max(per_dim) <= whole + 1e-6 and whole <= sum(per_dim) + 1e-6

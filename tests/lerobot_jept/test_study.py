@@ -167,8 +167,9 @@ def test_probe_accuracy_on_a_hand_checked_batch():
     assert per_dim == pytest.approx((3 + 2 + 1) / 9)
     assert all(math.isnan(v) for v in bin_accuracy(predicted[3:], labels[3:]))
     rows = {
-        "a": {"control_whole": 0.5, "inverse_whole": 0.7, "loss_obs": 2.0},
+        "a": {"control_whole": 0.5, "inverse_whole": 0.7, "loss_obs": 2.0, "previous_whole": 0.4},
         "b": {
+            "previous_whole": 0.6,
             "control_whole": 0.1,
             "inverse_whole": 0.3,
             "loss_obs": 4.0,
@@ -193,6 +194,9 @@ def test_probe_accuracy_on_a_hand_checked_batch():
     assert summary["T_vid"]["control_whole"] == pytest.approx(0.2)
     assert summary["T_vid"]["loss_obs"] == pytest.approx(5.0) and summary["T_vid"]["nc_accuracy"] == 0.25
     assert summary["T_vid"]["nc_accuracy_trained"] == 0.75
+    assert (
+        summary["T_vid"]["previous_whole"] == 0.6 and summary["T_demo"]["previous_whole"] == 0.4
+    )  # b2 has none
     assert summary["T_vid"]["swap_changed"] == pytest.approx((0.2 + 0.5) / 2)  # per task over its mates first
     assert summary["T_vid"]["swap_control_whole"] == pytest.approx((0.05 + 0.2) / 2)
     assert "swap_changed" not in summary["T_demo"]  # a has no scene-mate
@@ -211,7 +215,7 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
                 folder, SPLIT, {"a": [True] * 10, "b": [True] * n + [False] * (10 - n), "c": [False] * 10}
             )
             results = json.loads((folder / "results.json").read_text())
-            probe = {"T_vid": {"control_whole": n / 10, "control_per_dim": 0.5}}
+            probe = {"T_vid": {"control_whole": n / 10, "control_per_dim": 0.5, "previous_whole": 0.45}}
             if method == "JEPT":
                 probe["T_vid"].update(inverse_whole=0.9, inverse_per_dim=0.95, loss_obs=1.5)
                 probe["T_vid"].update(nc_accuracy=1.0, nc_accuracy_trained=0.9)
@@ -226,10 +230,12 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
     assert f"| T_vid | 40.0 [0.0, {40 + half:.1f}] | 0.0 [0.0, 0.0] |" in report
     assert f"| JEPT | T_vid | 40.0 [0.0, {40 + half:.1f}] | 50.0 [50.0, 50.0] | 90.0 " in report
     assert (
-        f"| 1.500 [1.500, 1.500] | 100.0 [100.0, 100.0] | 90.0 [90.0, 90.0] | 40.0 [0.0, {40 + half:.1f}] "
+        f"| 1.500 [1.500, 1.500] | 45.0 [45.0, 45.0] | 100.0 [100.0, 100.0] | 90.0 [90.0, 90.0] "
+        f"| 40.0 [0.0, {40 + half:.1f}] "
         "| 10.0 [10.0, 10.0] |" in report
     )
-    assert "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - | - | - | - |" in report
+    bc_idm = "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - | 45.0 [45.0, 45.0] | - | - | - | - |"
+    assert bc_idm in report
     assert "compare/comparison.png" in report
 
 
