@@ -36,9 +36,8 @@ STUDY_TASKS = [
 
 @dataclass
 class SwapCeilingConfig:
-    tasks: list[str] = field(
-        default_factory=lambda: list(STUDY_TASKS)
-    )  # each is compared with its scene-mates
+    # each task is compared with its scene-mates among these (default: the small study's split)
+    tasks: list[str] = field(default_factory=lambda: list(STUDY_TASKS))
     episodes: int = 8  # successful episodes per task
     seed: int = 7_000_000  # episode seeds seed, seed + 1, ... (failed episodes are skipped, as a build does)
     num_bins: int = 7
@@ -104,9 +103,8 @@ def main(args: list[str] | None = None) -> None:
             rows.append(f"| {task} | {m} | {len(d)} | {d.any(axis=1).mean():.2f} | {per_dim} |")
         if failed:
             tqdm.write(f"{task}: {failed} failed episodes skipped")
-    print(
-        f"\nscene-mate expert's action at the task's own states ({cfg.episodes} episodes per task, seeds from {cfg.seed}):"
-    )
+    seeds = f"{cfg.episodes} episodes per task, seeds from {cfg.seed}"
+    print(f"\nThe scene-mate's expert's action at the task's own states ({seeds}):")
     print("\n".join(rows))
 
 
