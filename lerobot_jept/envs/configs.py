@@ -35,6 +35,9 @@ class JeptMetaworldEnvConfig(JeptEnvConfig):
     def check_task(self, task: str) -> None:
         mw.check_task(task)
 
+    def describe(self, task: str) -> str:
+        return mw.task_description(task)
+
     def make_one(self, task: str) -> mw.JeptMetaworldEnv:
         return mw.JeptMetaworldEnv(
             task,
@@ -59,6 +62,9 @@ class JeptRobosuiteEnvConfig(JeptEnvConfig):
 
     def check_task(self, task: str) -> None:
         rs.check_task(task)
+
+    def describe(self, task: str) -> str:
+        return rs.task_description(task)
 
     def make_one(self, task: str) -> rs.JeptRobosuiteEnv:
         return rs.JeptRobosuiteEnv(task, image_size=self.image_size, max_episode_steps=self.episode_length)

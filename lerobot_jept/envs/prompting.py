@@ -24,13 +24,21 @@ PROMPT_VIDEO, PROMPT_MASK = "observation.prompt_video", "observation.prompt_vide
 
 
 class PromptVideoWrapper(gym.Wrapper):
-    """Adds ``prompt_video`` (N, H, W, 3) uint8 and ``prompt_video_mask`` (N,) to the observations."""
+    """Adds ``prompt_video`` (N, H, W, 3) uint8 and ``prompt_video_mask`` (N,) to the observations: prompts of
+    the env's own task, or of the task described by ``prompt_description`` (another task's video)."""
 
-    def __init__(self, env: gym.Env, repo_id: str, root: str | None, max_frames: int):
+    def __init__(
+        self,
+        env: gym.Env,
+        repo_id: str,
+        root: str | None,
+        max_frames: int,
+        prompt_description: str | None = None,
+    ):
         super().__init__(env)
         size = env.unwrapped.image_size
         self.bank = PromptBank(repo_id, root, max_frames, size)
-        self.episodes = self.bank.episodes(env.unwrapped.task_description)
+        self.episodes = self.bank.episodes(prompt_description or env.unwrapped.task_description)
         self.max_frames = max_frames
         self.observation_space = spaces.Dict(
             {
@@ -99,12 +107,16 @@ class JeptEnvConfig(EnvConfig):
         image_size, episode_length: must match the dataset (the builder's ``--image_size``, ``--max_episode_steps``).
         prompt_repo_id, prompt_root: the prompt bank, e.g. the builder's ``ORG/NAME_prompts``.
         prompt_max_frames: prompt frames per episode; use the policy's ``max_prompt_length``.
+        prompt_task: show every episode the bank prompts of this task instead of the env task's own (e.g. its
+            scene-mate's: window-close's video in the window-open env), to see whether the policy does what the
+            video shows. Default: the env task's own.
     """
 
     image_size: int = 224
     prompt_repo_id: str | None = None
     prompt_root: str | None = None
     prompt_max_frames: int = 250
+    prompt_task: str | None = None
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(
         default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE, "pixels": OBS_IMAGE}
@@ -121,6 +133,13 @@ class JeptEnvConfig(EnvConfig):
         }
         for task in self.tasks:
             self.check_task(task)
+        if self.prompt_task is not None:
+            self.check_task(self.prompt_task)
+            if self.prompt_repo_id is None:
+                raise ValueError(
+                    f"--env.prompt_task={self.prompt_task} shows that task's prompt videos: pass the bank that has "
+                    "them with --env.prompt_repo_id=ORG/NAME_prompts."
+                )
 
     @property
     def tasks(self) -> list[str]:
@@ -134,11 +153,16 @@ class JeptEnvConfig(EnvConfig):
     def make_one(self, task: str) -> gym.Env:
         """The bare env of one task (the builder's)."""
 
+    @abc.abstractmethod
+    def describe(self, task: str) -> str:
+        """The task's description: the task string of its episodes in the builder's repos."""
+
     def make_prompted(self, task: str) -> gym.Env:
         env = self.make_one(task)
         if self.prompt_repo_id is None:
             return env
-        return PromptVideoWrapper(env, self.prompt_repo_id, self.prompt_root, self.prompt_max_frames)
+        shown = self.describe(self.prompt_task) if self.prompt_task else None
+        return PromptVideoWrapper(env, self.prompt_repo_id, self.prompt_root, self.prompt_max_frames, shown)
 
     @property
     def gym_kwargs(self) -> dict:

@@ -217,6 +217,29 @@ def test_prompt_choice_is_deterministic_per_seed(tiny_build):
     assert chosen[0][0][0] == chosen[2][0][0] != chosen[1][0][0]  # prompt = seed % num_prompts
 
 
+def test_prompt_task_shows_another_tasks_prompt_videos(tiny_build):
+    """--env.prompt_task: the env runs its own task and shows, per seed, the prompt the other task's env shows."""
+    fields = dict(image_size=64, prompt_repo_id=PROMPTS, prompt_max_frames=4)
+    shown = JeptMetaworldEnvConfig(task="button-press-v3", prompt_task="reach-v3", **fields)
+    env = shown.make_prompted("button-press-v3")
+    reach = JeptMetaworldEnvConfig(task="reach-v3", **fields).make_prompted("reach-v3")
+    own = JeptMetaworldEnvConfig(task="button-press-v3", **fields).make_prompted("button-press-v3")
+    try:
+        assert env.episodes == reach.episodes and set(env.episodes).isdisjoint(own.episodes)
+        for seed in (0, 1):
+            obs, _ = env.reset(seed=seed)
+            assert np.array_equal(obs["prompt_video"], reach.reset(seed=seed)[0]["prompt_video"])
+            assert env.unwrapped.task == "button-press-v3"  # the scene and success are the env task's
+            assert np.array_equal(obs["pixels"], own.reset(seed=seed)[0]["pixels"])
+    finally:
+        for e in (env, reach, own):
+            e.close()
+    with pytest.raises(ValueError, match="--env.prompt_repo_id"):
+        JeptMetaworldEnvConfig(task="button-press-v3", prompt_task="reach-v3", image_size=64)
+    with pytest.raises(ValueError, match="reach-v3"):
+        JeptMetaworldEnvConfig(task="button-press-v3", prompt_task="reach-v9", **fields)
+
+
 def test_stock_metaworld_env_gets_a_clear_message(trained):
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.envs.configs import MetaworldEnv
