@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from lerobot_jept.discretization import bin_centres, to_bin_indices
 from lerobot_jept.envs import metaworld as mw
-from lerobot_jept.prompt_probe import scene_key
+from lerobot_jept.prompt_probe import scene_mates
 
 STUDY_TASKS = [
     "window-open-v3",
@@ -86,7 +86,7 @@ def main(args: list[str] | None = None) -> None:
         tasks = [mw.check_task(t) for t in cfg.tasks]
     except ValueError as err:
         raise SystemExit(f"expert_swap_ceiling: error: {err}") from None
-    mates = {t: [m for m in tasks if m != t and scene_key(m) == scene_key(t)] for t in tasks}
+    mates = scene_mates(tasks, {t: t for t in tasks})  # the probe's scene pairs
     if not any(mates.values()):
         raise SystemExit(
             "expert_swap_ceiling: error: no two of --tasks share a scene (the first word of their names); "
