@@ -11,7 +11,11 @@ learned on the demo tasks (P(a_t | o_t, o_t+1), Section 3.2). Per task of the la
   repo, whose input is the true change of the self-state over the next ``--steps`` steps
   (s_t+1 - s_t, ..., s_t+steps - s_t+steps-1), i.e. the best case of a perfect next-frame embedding;
 - with ``--features=pixels``, the same for a small CNN fitted on the camera frames o_t, ..., o_t+steps themselves
-  (the repo's resolution): what the images can tell of the action, before any embedding.
+  (the repo's resolution): what the images can tell of the action, before any embedding;
+- with ``--features=embedding --policy_path=CKPT``, the same MLP fitted on a JEPT checkpoint's joint embeddings
+  (h_t, h_t+1), on their self-state token alone and on their visual tokens alone, against the raw self-states
+  (s_t, s_t+1) of the same frames and the checkpoint's own inverse dynamics: which part of the joint embedding
+  carries inverse dynamics that transfers from the demo tasks to the others.
 
 On the demo tasks' own held-out episodes this is near 1; how far it falls on a video-only task bounds what any
 inverse dynamics fitted on these demos can reach there. Used in docs/prompt_collapse.md, section 7.
@@ -22,6 +26,7 @@ from pathlib import Path
 
 import draccus
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from lerobot_jept.discretization import to_bin_indices
@@ -34,7 +39,11 @@ class CeilingConfig:
     probe_repo_id: str = ""  # labelled held-out repo it is scored on (a build's `_probe`)
     root: Path | None = None  # parent folder of both repos (default: $HF_LEROBOT_HOME)
     steps: int = 1  # self-state changes after t given to the model (1 = the next frame only)
-    features: str = "state"  # "state": the true self-state changes; "pixels": the frames, through a small CNN
+    # "state": the true self-state changes; "pixels": the frames, through a small CNN; "embedding": the joint
+    # embeddings of the checkpoint at --policy_path (and their parts), against the raw self-states
+    features: str = "state"
+    policy_path: str = ""  # a JEPT checkpoint (.../pretrained_model), for --features=embedding
+    frames_per_episode: int = 16  # embedding: frames per episode, spread as jept-prompt-probe spreads them
     epochs: int = 20  # CNN training epochs (pixels)
     num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
     seed: int = 0
@@ -156,7 +165,13 @@ def ceiling(
         x_train, x_test = scaler.transform(demo["x"]), scaler.transform(probe["x"])
         model = lambda: MLPClassifier((128, 128), max_iter=400, random_state=seed)  # noqa: E731
         predicted = fit_per_dimension(model, x_train, demo["y"], x_test)
-    support = {tuple(a) for a in demo["y"]}
+    return score(predicted, demo["y"], probe)
+
+
+def score(predicted: np.ndarray, demo_labels: np.ndarray, probe: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Per probe task: frames, share of frames whose whole action is in the demos' support, whole-action and
+    per-dimension accuracy of ``predicted`` (N_probe, D) bins."""
+    support = {tuple(a) for a in demo_labels}
     in_support = np.array([tuple(a) in support for a in probe["y"]])
     hits = predicted == probe["y"]
     out = {}
@@ -169,6 +184,96 @@ def ceiling(
             "per_dim": [float(v) for v in hits[rows].mean(0)],
         }
     return out
+
+
+# The inputs an inverse dynamics of the frame pair (t, t+1) is fitted on with --features=embedding, all from the
+# same windows: the raw self-states, the checkpoint's joint embeddings (h_t, h_t+1) as its action head receives
+# them in training (online encoder, each frame over the frames up to it), and the two kinds of tokens in them.
+EMBEDDING_PARTS = ("self-state", "joint embedding", "its self-state token", "its visual tokens")
+OWN_INVERSE = "the checkpoint's inverse dynamics"
+
+
+@torch.no_grad()
+def embedding_frames(
+    policy_path: str, repo_id: str, root: Path | None, frames_per_episode: int, batch_size: int = 64
+) -> dict:
+    """Per frame t (``frames_per_episode`` per episode, as ``jept-prompt-probe`` picks them): the inputs of
+    :data:`EMBEDDING_PARTS` (``parts``, each (N, F)), the binned label a_t (``y``), the task, and the bins the
+    checkpoint's own inverse dynamics chooses from the real next frame (``own``, its ``offline_outputs``)."""
+    from lerobot.utils.constants import ACTION, OBS_STATE
+
+    import lerobot_policy_jept  # noqa: F401  (registers the policy types)
+    from lerobot_jept.prompt_probe import ProbeConfig, load_labelled, probe_frames
+    from lerobot_jept.suite import DatasetArg, PolicyArg
+
+    probe_cfg = ProbeConfig(
+        policy=PolicyArg(path=policy_path),
+        dataset=DatasetArg(repo_id=repo_id, root=None if root is None else str(root / repo_id)),
+    )
+    policy, pre, dataset = load_labelled(probe_cfg)
+    if policy.name != "jept":
+        raise ValueError(
+            f"{policy_path} is a {policy.name!r} policy: --features=embedding reads JEPT's joint embeddings."
+        )
+    names = task_names(dataset.meta) or {}
+    indices = probe_frames(dataset, frames_per_episode)
+    out: dict[str, list] = {name: [] for name in (*EMBEDDING_PARTS, "y", "own", "task")}
+    for start in tqdm(
+        range(0, len(indices), batch_size), desc=f"{repo_id} embeddings", unit="batch", leave=False
+    ):
+        items = [dataset[i] for i in indices[start : start + batch_size]]
+        batch = {k: torch.stack([it[k] for it in items]) for k in items[0] if torch.is_tensor(items[0][k])}
+        batch["task"] = [it["task"] for it in items]
+        state = batch[OBS_STATE][:, -2:].flatten(1)  # s_t, s_t+1 as recorded (the MLP standardises them)
+        processed = pre(batch)
+        h = policy._encode_window(processed)[2][:, -2:]  # (B, 2, N_obs, J): h_t, h_t+1; the last token: state
+        parts = (state, h.flatten(1), h[:, :, -1].flatten(1), h[:, :, :-1].flatten(1))
+        for name, part in zip(EMBEDDING_PARTS, parts, strict=True):
+            out[name].append(part.float().cpu().numpy())
+        out["y"].append(processed[ACTION][:, -1].cpu().numpy())
+        out["own"].append(policy.offline_outputs(processed)["inverse"].argmax(-1).cpu().numpy())
+        out["task"] += [names.get(t, t) for t in batch["task"]]
+    arrays = {k: np.concatenate(v) if k != "task" else np.array(v) for k, v in out.items()}
+    return {
+        "parts": {name: arrays[name] for name in EMBEDDING_PARTS},
+        "y": arrays["y"],
+        "own": arrays["own"],
+        "task": arrays["task"],
+    }
+
+
+def embedding_ceiling(demo: dict, probe: dict, seed: int = 0) -> dict[str, dict[str, dict]]:
+    """Per input of :data:`EMBEDDING_PARTS`, the MLP inverse dynamics fitted on the demo frames and scored per
+    probe task (as :func:`ceiling`), and the checkpoint's own inverse dynamics on the same probe frames."""
+    results = {
+        name: ceiling(
+            {"x": demo["parts"][name], "y": demo["y"], "task": demo["task"]},
+            {"x": probe["parts"][name], "y": probe["y"], "task": probe["task"]},
+            seed,
+        )
+        for name in EMBEDDING_PARTS
+    }
+    results[OWN_INVERSE] = score(probe["own"], demo["y"], probe)
+    return results
+
+
+def embedding_markdown(results: dict[str, dict[str, dict]], demo_tasks: set[str]) -> str:
+    """Rows: probe tasks; columns: whole-action accuracy (mean per-dimension accuracy) per input."""
+    inputs = list(results)
+    lines = [
+        "| task | in demos | frames | " + " | ".join(f"{name}: whole (per dim)" for name in inputs) + " |",
+        "|---|---|---:|" + "---:|" * len(inputs),
+    ]
+    for task, first in results[inputs[0]].items():
+        cells = [
+            f"{results[n][task]['whole']:.2f} ({np.mean(results[n][task]['per_dim']):.2f})" for n in inputs
+        ]
+        lines.append(
+            f"| {task} | {'yes' if task in demo_tasks else 'no'} | {first['frames']} | "
+            + " | ".join(cells)
+            + " |"
+        )
+    return "\n".join(lines)
 
 
 def markdown(results: dict[str, dict], demo_tasks: set[str], features: str = "state") -> str:
@@ -194,8 +299,19 @@ def main() -> None:
         )
     if cfg.steps < 1:
         raise SystemExit(f"--steps must be at least 1 (the next frame), got {cfg.steps}.")
-    if cfg.features not in ("state", "pixels"):
-        raise SystemExit(f"--features must be state or pixels, got {cfg.features!r}.")
+    if cfg.features not in ("state", "pixels", "embedding"):
+        raise SystemExit(f"--features must be state, pixels or embedding, got {cfg.features!r}.")
+    if cfg.features == "embedding":
+        if not cfg.policy_path:
+            raise SystemExit(
+                "--features=embedding reads a checkpoint's joint embeddings: pass --policy_path=CKPT."
+            )
+        demo, probe = (
+            embedding_frames(cfg.policy_path, repo, cfg.root, cfg.frames_per_episode)
+            for repo in (cfg.demo_repo_id, cfg.probe_repo_id)
+        )
+        print(embedding_markdown(embedding_ceiling(demo, probe, cfg.seed), set(demo["task"])))
+        return
     demo = load_frames(cfg.demo_repo_id, cfg.root, cfg.steps, cfg.num_bins, cfg.features)
     probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins, cfg.features)
     results = ceiling(demo, probe, cfg.seed, cfg.features, cfg.num_bins, cfg.epochs)
