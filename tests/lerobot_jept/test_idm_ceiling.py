@@ -1,9 +1,18 @@
-"""The state inverse-dynamics ceiling (scripts/idm_ceiling.py) on a real tiny build and on hand-made frames."""
+"""The inverse-dynamics ceilings (scripts/idm_ceiling.py) on a real tiny build, a checkpoint and hand-made frames."""
 
 import numpy as np
 import pytest
 
-from scripts.idm_ceiling import ceiling, load_frames
+from lerobot_jept.discretization import to_bin_indices
+from lerobot_jept.prompt_probe import probe_frames
+from scripts.idm_ceiling import (
+    EMBEDDING_PARTS,
+    OWN_INVERSE,
+    ceiling,
+    embedding_ceiling,
+    embedding_frames,
+    load_frames,
+)
 from tests.conftest import TINY, load
 
 
@@ -68,3 +77,61 @@ def test_pixel_ceiling_reads_the_motion_between_frames():
         epochs=15,
     )
     assert out["a"]["whole"] >= 0.95, out
+
+
+@pytest.fixture(scope="module")
+def untrained_checkpoint(tiny_build, tmp_path_factory):
+    from tests.lerobot_jept.test_policy import build_policy
+
+    policy, pre, post = build_policy(tiny_build)
+    path = tmp_path_factory.mktemp("ckpt") / "pretrained_model"
+    for part in (policy, pre, post):
+        part.save_pretrained(path)
+    return path, policy.config
+
+
+def test_embedding_frames_pair_the_label_with_the_states_and_embeddings_of_t_and_t1(untrained_checkpoint):
+    path, cfg = untrained_checkpoint
+    frames = embedding_frames(str(path), "test/mw_tiny_demo", None, frames_per_episode=3)
+    dataset = load("test/mw_tiny_demo")
+    indices = probe_frames(dataset, 3)
+    table = dataset.hf_dataset.with_format("numpy")
+    state, action = table["observation.state"], table["action"]
+    n, tokens, j = len(indices), cfg.frame_perceiver_queries + 1, cfg.joint_embedding_dim
+    parts = frames["parts"]
+    assert list(parts) == list(EMBEDDING_PARTS)
+    assert parts["joint embedding"].shape == (n, 2 * tokens * j)
+    assert parts["its self-state token"].shape == (n, 2 * j)
+    assert parts["its visual tokens"].shape == (n, 2 * (tokens - 1) * j)
+    expected = np.stack([np.concatenate([state[i], state[i + 1]]) for i in indices])
+    np.testing.assert_allclose(parts["self-state"], expected, rtol=1e-6)
+    assert (frames["y"] == np.stack([to_bin_indices(action[i], 7) for i in indices])).all()
+    assert frames["own"].shape == (n, 4) and set(np.unique(frames["own"])) <= set(range(7))
+    assert set(frames["task"]) == set(TINY["demo_tasks"])
+    # the self-state token is the last of each frame's tokens
+    h = parts["joint embedding"].reshape(n, 2, tokens, j)
+    np.testing.assert_allclose(parts["its self-state token"], h[:, :, -1].reshape(n, -1))
+
+
+def test_embedding_ceiling_scores_each_input_and_the_checkpoints_own_choice():
+    rng = np.random.default_rng(0)
+    motion = rng.normal(size=(300, 2))
+    y = np.stack([np.where(motion[:, 0] > 0, 6, 0), np.full(300, 3)], 1)
+    noise = rng.normal(size=(300, 8))
+
+    def frames(rows, task):
+        parts = {name: noise[rows] for name in EMBEDDING_PARTS}
+        parts["self-state"] = motion[rows]
+        return {
+            "parts": parts,
+            "y": y[rows],
+            "own": np.full((len(rows), 2), 3),
+            "task": np.array([task] * len(rows)),
+        }
+
+    out = embedding_ceiling(frames(np.arange(250), "a"), frames(np.arange(250, 300), "b"))
+    assert set(out) == {*EMBEDDING_PARTS, OWN_INVERSE}
+    assert out["self-state"]["b"]["whole"] >= 0.9
+    assert out["its visual tokens"]["b"]["whole"] < 0.8  # noise tells the motion no better than chance
+    own = out[OWN_INVERSE]["b"]
+    assert own["per_dim"][1] == 1.0 and own["whole"] == pytest.approx(float((y[250:, 0] == 3).mean()))
