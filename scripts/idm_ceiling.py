@@ -190,16 +190,25 @@ def score(predicted: np.ndarray, demo_labels: np.ndarray, probe: dict[str, np.nd
 # same windows: the raw self-states, the checkpoint's joint embeddings (h_t, h_t+1) as its action head receives
 # them in training (online encoder, each frame over the frames up to it), and the two kinds of tokens in them.
 EMBEDDING_PARTS = ("self-state", "joint embedding", "its self-state token", "its visual tokens")
+# The state-token model scored on (h_t, h_t+1) with h_t+1 the one the checkpoint predicts under the task's prompt
+# (what it would act from), and the checkpoint's own inverse dynamics from the real h_t+1.
+PREDICTED = "its self-state token, h_t+1 predicted"
 OWN_INVERSE = "the checkpoint's inverse dynamics"
 
 
 @torch.no_grad()
 def embedding_frames(
-    policy_path: str, repo_id: str, root: Path | None, frames_per_episode: int, batch_size: int = 64
+    policy_path: str,
+    repo_id: str,
+    root: Path | None,
+    frames_per_episode: int,
+    batch_size: int = 64,
+    seed: int = 0,
 ) -> dict:
     """Per frame t (``frames_per_episode`` per episode, as ``jept-prompt-probe`` picks them): the inputs of
-    :data:`EMBEDDING_PARTS` (``parts``, each (N, F)), the binned label a_t (``y``), the task, and the bins the
-    checkpoint's own inverse dynamics chooses from the real next frame (``own``, its ``offline_outputs``)."""
+    :data:`EMBEDDING_PARTS` (``parts``, each (N, F)), the self-state tokens of h_t and of the h_t+1 the
+    checkpoint predicts under the task's bank prompt (``predicted``), the binned label a_t (``y``), the task, and
+    the bins the checkpoint's own inverse dynamics chooses from the real next frame (``own``)."""
     from lerobot.utils.constants import ACTION, OBS_STATE
 
     import lerobot_policy_jept  # noqa: F401  (registers the policy types)
@@ -217,7 +226,9 @@ def embedding_frames(
         )
     names = task_names(dataset.meta) or {}
     indices = probe_frames(dataset, frames_per_episode)
-    out: dict[str, list] = {name: [] for name in (*EMBEDDING_PARTS, "y", "own", "task")}
+    torch.manual_seed(seed)  # the preprocessor draws each dataset sample's bank prompt among its task's
+    out: dict[str, list] = {name: [] for name in (*EMBEDDING_PARTS, "predicted", "y", "own", "task")}
+    k = policy.config.n_obs_steps
     for start in tqdm(
         range(0, len(indices), batch_size), desc=f"{repo_id} embeddings", unit="batch", leave=False
     ):
@@ -226,16 +237,21 @@ def embedding_frames(
         batch["task"] = [it["task"] for it in items]
         state = batch[OBS_STATE][:, -2:].flatten(1)  # s_t, s_t+1 as recorded (the MLP standardises them)
         processed = pre(batch)
-        h = policy._encode_window(processed)[2][:, -2:]  # (B, 2, N_obs, J): h_t, h_t+1; the last token: state
+        _, obs, h_in = policy._encode_window(processed)
+        prompt = policy.prompt(processed) if policy.prompt_active else None
+        pred_h, logits = policy.model.predict(prompt, obs[:, :k], h_in)
+        h = h_in[:, -2:]  # (B, 2, N_obs, J): h_t, h_t+1; the last token of each is the self-state token
         parts = (state, h.flatten(1), h[:, :, -1].flatten(1), h[:, :, :-1].flatten(1))
         for name, part in zip(EMBEDDING_PARTS, parts, strict=True):
             out[name].append(part.float().cpu().numpy())
+        out["predicted"].append(torch.cat([h[:, 0, -1], pred_h[:, -1, -1]], 1).float().cpu().numpy())
         out["y"].append(processed[ACTION][:, -1].cpu().numpy())
-        out["own"].append(policy.offline_outputs(processed)["inverse"].argmax(-1).cpu().numpy())
+        out["own"].append(logits[:, -1].argmax(-1).cpu().numpy())  # offline_outputs' ``inverse``
         out["task"] += [names.get(t, t) for t in batch["task"]]
     arrays = {k: np.concatenate(v) if k != "task" else np.array(v) for k, v in out.items()}
     return {
         "parts": {name: arrays[name] for name in EMBEDDING_PARTS},
+        "predicted": arrays["predicted"],
         "y": arrays["y"],
         "own": arrays["own"],
         "task": arrays["task"],
@@ -244,14 +260,20 @@ def embedding_frames(
 
 def embedding_ceiling(demo: dict, probe: dict, seed: int = 0) -> dict[str, dict[str, dict]]:
     """Per input of :data:`EMBEDDING_PARTS`, the MLP inverse dynamics fitted on the demo frames and scored per
-    probe task (as :func:`ceiling`), and the checkpoint's own inverse dynamics on the same probe frames."""
+    probe task (as :func:`ceiling`); the state-token model also on the predicted h_t+1 (:data:`PREDICTED`); and
+    the checkpoint's own inverse dynamics on the same probe frames."""
+    fitted = {name: demo["parts"][name] for name in EMBEDDING_PARTS}
+    fitted[PREDICTED] = demo["parts"][
+        "its self-state token"
+    ]  # fitted on real pairs, scored on predicted ones
+    scored = {**probe["parts"], PREDICTED: probe["predicted"]}
     results = {
         name: ceiling(
-            {"x": demo["parts"][name], "y": demo["y"], "task": demo["task"]},
-            {"x": probe["parts"][name], "y": probe["y"], "task": probe["task"]},
+            {"x": x, "y": demo["y"], "task": demo["task"]},
+            {"x": scored[name], "y": probe["y"], "task": probe["task"]},
             seed,
         )
-        for name in EMBEDDING_PARTS
+        for name, x in fitted.items()
     }
     results[OWN_INVERSE] = score(probe["own"], demo["y"], probe)
     return results
@@ -307,7 +329,7 @@ def main() -> None:
                 "--features=embedding reads a checkpoint's joint embeddings: pass --policy_path=CKPT."
             )
         demo, probe = (
-            embedding_frames(cfg.policy_path, repo, cfg.root, cfg.frames_per_episode)
+            embedding_frames(cfg.policy_path, repo, cfg.root, cfg.frames_per_episode, seed=cfg.seed)
             for repo in (cfg.demo_repo_id, cfg.probe_repo_id)
         )
         print(embedding_markdown(embedding_ceiling(demo, probe, cfg.seed), set(demo["task"])))

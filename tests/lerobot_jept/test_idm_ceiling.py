@@ -8,6 +8,7 @@ from lerobot_jept.prompt_probe import probe_frames
 from scripts.idm_ceiling import (
     EMBEDDING_PARTS,
     OWN_INVERSE,
+    PREDICTED,
     ceiling,
     embedding_ceiling,
     embedding_frames,
@@ -106,6 +107,10 @@ def test_embedding_frames_pair_the_label_with_the_states_and_embeddings_of_t_and
     expected = np.stack([np.concatenate([state[i], state[i + 1]]) for i in indices])
     np.testing.assert_allclose(parts["self-state"], expected, rtol=1e-6)
     assert (frames["y"] == np.stack([to_bin_indices(action[i], 7) for i in indices])).all()
+    assert frames["predicted"].shape == (n, 2 * j)
+    np.testing.assert_allclose(
+        frames["predicted"][:, :j], parts["its self-state token"][:, :j]
+    )  # the real h_t
     assert frames["own"].shape == (n, 4) and set(np.unique(frames["own"])) <= set(range(7))
     assert set(frames["task"]) == set(TINY["demo_tasks"])
     # the self-state token is the last of each frame's tokens
@@ -121,16 +126,19 @@ def test_embedding_ceiling_scores_each_input_and_the_checkpoints_own_choice():
 
     def frames(rows, task):
         parts = {name: noise[rows] for name in EMBEDDING_PARTS}
-        parts["self-state"] = motion[rows]
+        parts["self-state"] = parts["its self-state token"] = motion[rows]
         return {
             "parts": parts,
+            "predicted": -motion[rows],  # a predicted next state that moves the other way
             "y": y[rows],
             "own": np.full((len(rows), 2), 3),
             "task": np.array([task] * len(rows)),
         }
 
     out = embedding_ceiling(frames(np.arange(250), "a"), frames(np.arange(250, 300), "b"))
-    assert set(out) == {*EMBEDDING_PARTS, OWN_INVERSE}
+    assert set(out) == {*EMBEDDING_PARTS, PREDICTED, OWN_INVERSE}
+    # the state-token model is fitted on the real pairs and scored on the predicted ones
+    assert out["its self-state token"]["b"]["whole"] >= 0.9 and out[PREDICTED]["b"]["whole"] <= 0.1
     assert out["self-state"]["b"]["whole"] >= 0.9
     assert out["its visual tokens"]["b"]["whole"] < 0.8  # noise tells the motion no better than chance
     own = out[OWN_INVERSE]["b"]
