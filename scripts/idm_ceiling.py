@@ -15,10 +15,11 @@ learned on the demo tasks (P(a_t | o_t, o_t+1), Section 3.2). Per task of the la
 - with ``--features=embedding --policy_path=CKPT``, the same MLP fitted on a JEPT checkpoint's joint embeddings
   (h_t, h_t+1), on their self-state token alone and on their visual tokens alone, against the raw self-states
   (s_t, s_t+1) of the same frames and the checkpoint's own inverse dynamics: which part of the joint embedding
-  carries inverse dynamics that transfers from the demo tasks to the others.
+  carries inverse dynamics that transfers from the demo tasks to the others; and the state-token model scored on
+  the h_t+1 the checkpoint predicts, what it would act from.
 
 On the demo tasks' own held-out episodes this is near 1; how far it falls on a video-only task bounds what any
-inverse dynamics fitted on these demos can reach there. Used in docs/prompt_collapse.md, section 7.
+inverse dynamics fitted on these demos can reach there. Used in docs/prompt_collapse.md, sections 7, 8 and 13.
 """
 
 from dataclasses import dataclass
@@ -233,7 +234,9 @@ def embedding_frames(
         range(0, len(indices), batch_size), desc=f"{repo_id} embeddings", unit="batch", leave=False
     ):
         items = [dataset[i] for i in indices[start : start + batch_size]]
-        batch = {k: torch.stack([it[k] for it in items]) for k in items[0] if torch.is_tensor(items[0][k])}
+        batch = {
+            key: torch.stack([it[key] for it in items]) for key in items[0] if torch.is_tensor(items[0][key])
+        }
         batch["task"] = [it["task"] for it in items]
         state = batch[OBS_STATE][:, -2:].flatten(1)  # s_t, s_t+1 as recorded (the MLP standardises them)
         processed = pre(batch)
@@ -263,9 +266,8 @@ def embedding_ceiling(demo: dict, probe: dict, seed: int = 0) -> dict[str, dict[
     probe task (as :func:`ceiling`); the state-token model also on the predicted h_t+1 (:data:`PREDICTED`); and
     the checkpoint's own inverse dynamics on the same probe frames."""
     fitted = {name: demo["parts"][name] for name in EMBEDDING_PARTS}
-    fitted[PREDICTED] = demo["parts"][
-        "its self-state token"
-    ]  # fitted on real pairs, scored on predicted ones
+    # the state-token model: fitted on the real pairs, scored on the predicted ones
+    fitted[PREDICTED] = demo["parts"]["its self-state token"]
     scored = {**probe["parts"], PREDICTED: probe["predicted"]}
     results = {
         name: ceiling(
