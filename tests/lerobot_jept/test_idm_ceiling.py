@@ -15,6 +15,8 @@ from scripts.idm_ceiling import (
     load_frames,
 )
 from tests.conftest import TINY, load
+from tests.lerobot_jept.test_hub import checkpoint  # noqa: F401  (the saved tiny checkpoint, a fixture)
+from tests.lerobot_jept.test_policy import tiny_config
 
 
 def test_frames_pair_each_action_with_the_next_state_change(tiny_build):
@@ -80,20 +82,9 @@ def test_pixel_ceiling_reads_the_motion_between_frames():
     assert out["a"]["whole"] >= 0.95, out
 
 
-@pytest.fixture(scope="module")
-def untrained_checkpoint(tiny_build, tmp_path_factory):
-    from tests.lerobot_jept.test_policy import build_policy
-
-    policy, pre, post = build_policy(tiny_build)
-    path = tmp_path_factory.mktemp("ckpt") / "pretrained_model"
-    for part in (policy, pre, post):
-        part.save_pretrained(path)
-    return path, policy.config
-
-
-def test_embedding_frames_pair_the_label_with_the_states_and_embeddings_of_t_and_t1(untrained_checkpoint):
-    path, cfg = untrained_checkpoint
-    frames = embedding_frames(str(path), "test/mw_tiny_demo", None, frames_per_episode=3)
+def test_embedding_frames_pair_the_label_with_the_states_and_embeddings_of_t_and_t1(checkpoint):  # noqa: F811
+    cfg = tiny_config()  # the configuration the shared tiny checkpoint was made with
+    frames = embedding_frames(str(checkpoint), "test/mw_tiny_demo", None, frames_per_episode=3)
     dataset = load("test/mw_tiny_demo")
     indices = probe_frames(dataset, 3)
     table = dataset.hf_dataset.with_format("numpy")
