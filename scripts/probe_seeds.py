@@ -1,0 +1,137 @@
+"""Issue 13's action bar over training seeds: two arms' ``jept-prompt-probe`` outputs side by side, per task.
+
+    python -m scripts.probe_seeds --arms='{videos: [RUN1/probe, RUN2/probe, RUN3/probe], demos: [...]}' \\
+        --task=window-close-v3
+
+Each folder (or ``prompt_probe.json`` path) is one training seed's probe on the same held-out repo. For ``--task``
+and for its split (T_demo / T_vid / T_unseen) this prints, per arm, the mean, the 95% Student's t interval over
+seeds and the per-seed values of the probe's measures, then the bar the issue sets: is the first arm's mean
+``control`` whole-action accuracy on the task above the second arm's by more than the spread over seeds (the
+larger of the two arms' ranges, max - min)? Used in docs/prompt_collapse.md, section 15.
+"""
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+
+from lerobot_jept.study import fmt, interval
+
+TASK_MEASURES = (
+    ("control_whole", "control whole (%)"),
+    ("control_per_dim", "control per dim (%)"),
+    ("inverse_whole", "inverse whole (%)"),
+    ("swap_changed", "scene-mate's prompt changes the action (%)"),
+    ("swap_control_whole", "control whole under the scene-mate's prompt (%)"),
+    ("loss_obs", "L_obs"),
+)
+SPLIT_MEASURES = (
+    ("control_whole", "control whole (%)"),
+    ("inverse_whole", "inverse whole (%)"),
+    ("swap_changed", "prompt swap changes the action (%)"),
+    ("nc_accuracy_trained", "E_prt NC, trained tasks (%)"),
+    ("loss_obs", "L_obs"),
+)
+
+
+@dataclass
+class ProbeSeedsConfig:
+    # arm name -> jept-prompt-probe output folders (or prompt_probe.json files), one per training seed
+    arms: dict[str, list[str]] = field(default_factory=dict)
+    task: str = "window-close-v3"  # the task whose actions the bar is about (a task of the probe repo)
+
+
+def load_probe(path: str) -> dict:
+    file = Path(path)
+    if file.is_dir():
+        file = file / "prompt_probe.json"
+    if not file.is_file():
+        raise SystemExit(
+            f"{file} not found: pass jept-prompt-probe's --output_dir (or its prompt_probe.json)."
+        )
+    return json.loads(file.read_text())
+
+
+def task_value(probe: dict, task: str, measure: str) -> float:
+    """One measure of one task; a per-scene-mate measure is averaged over the task's scene-mates."""
+    value = probe["actions"][task].get(measure, np.nan)
+    if isinstance(value, dict):
+        return float(np.mean(list(value.values()))) if value else np.nan
+    return float(value)
+
+
+def split_of(probe: dict, task: str) -> str:
+    return next(name for name, row in probe["splits"].items() if task in row["tasks"])
+
+
+def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
+    """Per arm, the per-seed values of the task's and its split's measures; and the bar on the first two arms."""
+    for name, probes in arms.items():
+        for probe in probes:
+            if task not in probe["actions"]:
+                raise SystemExit(
+                    f"arm {name!r}: {task} is not in the probed repo {probe['dataset']} (tasks: "
+                    f"{', '.join(sorted(probe['actions']))}); pass one of them as --task."
+                )
+    split = split_of(next(iter(arms.values()))[0], task)
+    out = {"task": task, "split": split, "arms": {}}
+    for name, probes in arms.items():
+        out["arms"][name] = {
+            "task": {m: [task_value(p, task, m) for p in probes] for m, _ in TASK_MEASURES},
+            "split": {m: [p["splits"][split].get(m, np.nan) for p in probes] for m, _ in SPLIT_MEASURES},
+        }
+    if len(arms) >= 2:
+        (first, a), (second, b) = list(out["arms"].items())[:2]
+        x, y = a["task"]["control_whole"], b["task"]["control_whole"]
+        margin = float(np.mean(x) - np.mean(y))
+        spread = float(max(np.ptp(x), np.ptp(y)))
+        seeds = [len(x), len(y)]  # one seed has no spread to beat
+        met = min(seeds) >= 2 and margin > spread
+        out["bar"] = {"arms": [first, second], "seeds": seeds, "margin": margin, "spread": spread, "met": met}
+    return out
+
+
+def markdown(result: dict) -> str:
+    names = list(result["arms"])
+    lines = []
+    for part, measures, title in (
+        ("task", TASK_MEASURES, result["task"]),
+        ("split", SPLIT_MEASURES, f"{result['split']} (mean over its tasks)"),
+    ):
+        lines += [f"| {title} | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+        for measure, label in measures:
+            scale, digits = (1.0, 3) if measure == "loss_obs" else (100.0, 1)
+            cells = []
+            for name in names:
+                values = result["arms"][name][part][measure]
+                per_seed = " / ".join(f"{v * scale:.{digits}f}" for v in values)
+                cells.append(f"{fmt(*interval(values), digits=digits, scale=scale)} ({per_seed})")
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if bar := result.get("bar"):
+        first, second = bar["arms"]
+        verdict = (
+            f"the bar (a margin larger than the spread) is {'met' if bar['met'] else 'not met'}"
+            if min(bar["seeds"]) >= 2
+            else "one seed in an arm has no spread: the bar needs at least two seeds per arm"
+        )
+        lines.append(
+            f"{result['task']} control whole: {first} - {second} = {100 * bar['margin']:+.1f} points; spread over "
+            f"seeds (larger range of the two arms, {' and '.join(map(str, bar['seeds']))} seeds) "
+            f"{100 * bar['spread']:.1f} points: {verdict}."
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    cfg = draccus.parse(config_class=ProbeSeedsConfig)
+    if not cfg.arms:
+        raise SystemExit("Pass --arms='{NAME: [PROBE_DIR, ...], NAME2: [...]}' (jept-prompt-probe outputs).")
+    arms = {name: [load_probe(path) for path in paths] for name, paths in cfg.arms.items()}
+    print(markdown(compare_arms(arms, cfg.task)))
+
+
+if __name__ == "__main__":
+    main()

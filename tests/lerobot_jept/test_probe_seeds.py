@@ -1,0 +1,60 @@
+"""Issue 13's action bar over seeds (scripts/probe_seeds.py): on a real probe of a saved checkpoint, and on
+hand-made probe outputs whose answer is known."""
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from lerobot_jept.prompt_probe import ProbeConfig, run_probe
+from lerobot_jept.suite import DatasetArg, PolicyArg
+from scripts.probe_seeds import compare_arms, load_probe, markdown
+from tests.conftest import TINY
+from tests.lerobot_jept.test_hub import checkpoint  # noqa: F401  (the saved tiny checkpoint, a fixture)
+
+
+def test_reads_a_real_probe_output(checkpoint, tmp_path):  # noqa: F811
+    run_probe(ProbeConfig(PolicyArg(str(checkpoint)), DatasetArg("test/mw_tiny_probe"), output_dir=tmp_path))
+    probe = load_probe(str(tmp_path))  # the folder jept-prompt-probe wrote
+    assert probe == json.loads((tmp_path / "prompt_probe.json").read_text())
+    task = TINY["video_tasks"][0]
+    result = compare_arms({"a": [probe, probe], "b": [probe]}, task)
+    assert result["split"] == "T_vid"
+    row = probe["actions"][task]
+    assert result["arms"]["a"]["task"]["control_whole"] == [row["control_whole"]] * 2
+    assert result["arms"]["b"]["split"]["loss_obs"] == [probe["splits"]["T_vid"]["loss_obs"]]
+    assert result["bar"]["margin"] == 0.0 and not result["bar"]["met"]
+    assert "needs at least two seeds per arm" in markdown(result)  # arm b has one seed: no spread to beat
+    with pytest.raises(SystemExit, match="not in the probed repo"):
+        compare_arms({"a": [probe]}, "window-close-v3")
+
+
+def probe_output(control: float, swaps: dict[str, float]) -> dict:
+    return {
+        "dataset": "x/probe",
+        "actions": {"close": {"control_whole": control, "swap_changed": swaps, "loss_obs": 1.0}},
+        "splits": {"T_vid": {"tasks": ["close"], "control_whole": control, "loss_obs": 1.0}},
+    }
+
+
+def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
+    demos = [probe_output(c, {"open": 0.1, "other": 0.3}) for c in (0.20, 0.25, 0.30)]  # range 0.10
+    close = [probe_output(c, {"open": 0.5}) for c in (0.36, 0.40, 0.44)]  # mean 0.40, range 0.08
+    result = compare_arms({"videos": close, "demos": demos}, "close")
+    assert result["arms"]["demos"]["task"]["swap_changed"] == pytest.approx(
+        [0.2] * 3
+    )  # mean over scene-mates
+    assert result["bar"]["margin"] == pytest.approx(0.15) and result["bar"]["spread"] == pytest.approx(0.10)
+    assert result["bar"]["met"]
+    assert "the bar (a margin larger than the spread) is met" in markdown(result)
+    assert np.isnan(result["arms"]["videos"]["task"]["inverse_whole"]).all()  # a measure the probe lacks
+
+    wide = copy.deepcopy(demos)
+    wide[0]["actions"]["close"]["control_whole"] = 0.05  # the demos' range is now 0.25 > the margin 0.2
+    result = compare_arms({"videos": close, "demos": wide}, "close")
+    assert result["bar"]["margin"] == pytest.approx(0.2) and not result["bar"]["met"]
+    assert "is not met" in markdown(result)
+    assert not compare_arms({"demos": demos, "videos": close}, "close")["bar"][
+        "met"
+    ]  # the first arm must lead
