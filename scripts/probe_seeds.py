@@ -107,7 +107,12 @@ def markdown(result: dict) -> str:
             for name in names:
                 values = result["arms"][name][part][measure]
                 per_seed = " / ".join(f"{v * scale:.{digits}f}" for v in values)
-                cells.append(f"{fmt(*interval(values), digits=digits, scale=scale)} ({per_seed})")
+                mean, low, high = interval(values)
+                low, high = (
+                    max(low, 0.0),
+                    min(high, np.inf if measure == "loss_obs" else 1.0),
+                )  # NaN stays NaN
+                cells.append(f"{fmt(mean, low, high, digits=digits, scale=scale)} ({per_seed})")
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         lines.append("")
     if bar := result.get("bar"):

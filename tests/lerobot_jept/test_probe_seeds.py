@@ -54,7 +54,9 @@ def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
     wide[0]["actions"]["close"]["control_whole"] = 0.05  # the demos' range is now 0.25 > the margin 0.2
     result = compare_arms({"videos": close, "demos": wide}, "close")
     assert result["bar"]["margin"] == pytest.approx(0.2) and not result["bar"]["met"]
-    assert "is not met" in markdown(result)
+    text = markdown(result)
+    assert "is not met" in text
+    assert "| control whole (%) | 40.0 [" in text and "20.0 [0.0, " in text  # intervals clipped to [0, 100]
     assert not compare_arms({"demos": demos, "videos": close}, "close")["bar"][
         "met"
     ]  # the first arm must lead
