@@ -62,6 +62,12 @@ def task_value(probe: dict, task: str, measure: str) -> float:
     return float(value)
 
 
+def trained_nc(probe: dict) -> float:
+    """E_prt nearest-centroid accuracy over the held-out prompts of every task the policy trained on."""
+    trained = probe.get("prompt_separability", {}).get("trained_tasks") or {}
+    return float(trained.get("nearest_centroid_accuracy", np.nan))
+
+
 def split_of(probe: dict, task: str) -> str:
     return next(name for name, row in probe["splits"].items() if task in row["tasks"])
 
@@ -81,6 +87,7 @@ def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
         out["arms"][name] = {
             "task": {m: [task_value(p, task, m) for p in probes] for m, _ in TASK_MEASURES},
             "split": {m: [p["splits"][split].get(m, np.nan) for p in probes] for m, _ in SPLIT_MEASURES},
+            "nc_trained": [trained_nc(p) for p in probes],
         }
     if len(arms) >= 2:
         (first, a), (second, b) = list(out["arms"].items())[:2]
@@ -93,6 +100,15 @@ def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
     return out
 
 
+def cell(values: list[float], measure: str) -> str:
+    """Mean [95% t interval, clipped to the measure's range] (per seed); L_obs as is, accuracies in %."""
+    scale, digits, top = (1.0, 3, np.inf) if measure == "loss_obs" else (100.0, 1, 1.0)
+    mean, low, high = interval(values)
+    low, high = max(low, 0.0), min(high, top)  # NaN (one seed) stays NaN
+    per_seed = " / ".join(f"{v * scale:.{digits}f}" for v in values)
+    return f"{fmt(mean, low, high, digits=digits, scale=scale)} ({per_seed})"
+
+
 def markdown(result: dict) -> str:
     names = list(result["arms"])
     lines = []
@@ -102,19 +118,11 @@ def markdown(result: dict) -> str:
     ):
         lines += [f"| {title} | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         for measure, label in measures:
-            scale, digits = (1.0, 3) if measure == "loss_obs" else (100.0, 1)
-            cells = []
-            for name in names:
-                values = result["arms"][name][part][measure]
-                per_seed = " / ".join(f"{v * scale:.{digits}f}" for v in values)
-                mean, low, high = interval(values)
-                low, high = (
-                    max(low, 0.0),
-                    min(high, np.inf if measure == "loss_obs" else 1.0),
-                )  # NaN stays NaN
-                cells.append(f"{fmt(mean, low, high, digits=digits, scale=scale)} ({per_seed})")
+            cells = [cell(result["arms"][name][part][measure], measure) for name in names]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         lines.append("")
+    nc = "; ".join(f"{name} {cell(result['arms'][name]['nc_trained'], 'nc')}" for name in names)
+    lines += [f"E_prt nearest-centroid accuracy over the trained tasks' held-out prompts (%): {nc}", ""]
     if bar := result.get("bar"):
         first, second = bar["arms"]
         verdict = (

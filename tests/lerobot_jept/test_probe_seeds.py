@@ -24,6 +24,8 @@ def test_reads_a_real_probe_output(checkpoint, tmp_path):  # noqa: F811
     row = probe["actions"][task]
     assert result["arms"]["a"]["task"]["control_whole"] == [row["control_whole"]] * 2
     assert result["arms"]["b"]["split"]["loss_obs"] == [probe["splits"]["T_vid"]["loss_obs"]]
+    trained = probe["prompt_separability"]["trained_tasks"]["nearest_centroid_accuracy"]
+    assert result["arms"]["a"]["nc_trained"] == [trained] * 2
     assert result["bar"]["margin"] == 0.0 and not result["bar"]["met"]
     assert "needs at least two seeds per arm" in markdown(result)  # arm b has one seed: no spread to beat
     with pytest.raises(SystemExit, match="not in the probed repo"):
