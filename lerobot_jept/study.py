@@ -513,6 +513,19 @@ def fmt(mean: float, low: float, high: float, digits: int = 1, scale: float = 1.
     return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
+def probe_interval(values: list[float], measure: str) -> tuple[float, float, float]:
+    """:func:`interval` of a probe measure over seeds, clipped to its range (accuracies [0, 1], L_obs >= 0)."""
+    mean, low, high = interval(values)
+    top = math.inf if measure == "loss_obs" else 1.0
+    return mean, max(low, 0.0), min(high, top)  # one seed: NaN bounds stay NaN
+
+
+def probe_fmt(stats: tuple[float, float, float], measure: str) -> str:
+    """L_obs as is (3 digits), accuracies in % (1 digit)."""
+    scale, digits = (1.0, 3) if measure == "loss_obs" else (100.0, 1)
+    return fmt(*stats, digits=digits, scale=scale)
+
+
 def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
     """The offline probe per split group, mean [95% interval] over seeds, per method."""
     out = output_dir(cfg)
@@ -542,12 +555,9 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
         for group, measures in groups.items():
             cells = []
             for measure in PROBE_MEASURES:
-                mean, low, high = interval(measures.get(measure, []))
-                bound = math.inf if measure == "loss_obs" else 1.0  # accuracies lie in [0, 1]
-                stats = (mean, max(low, 0.0), min(high, bound)) if low == low else (mean, low, high)
+                stats = probe_interval(measures.get(measure, []), measure)
                 summary.setdefault(method, {}).setdefault(group, {})[measure] = stats
-                scale, digits = (1.0, 3) if measure == "loss_obs" else (100.0, 1)
-                cells.append(fmt(*stats, digits=digits, scale=scale))
+                cells.append(probe_fmt(stats, measure))
             lines.append(f"| {method} | {group} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n", summary
 

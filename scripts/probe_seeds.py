@@ -17,7 +17,7 @@ from pathlib import Path
 import draccus
 import numpy as np
 
-from lerobot_jept.study import fmt, interval
+from lerobot_jept.study import probe_fmt, probe_interval
 
 TASK_MEASURES = (
     ("control_whole", "control whole (%)"),
@@ -101,12 +101,9 @@ def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
 
 
 def cell(values: list[float], measure: str) -> str:
-    """Mean [95% t interval, clipped to the measure's range] (per seed); L_obs as is, accuracies in %."""
-    scale, digits, top = (1.0, 3, np.inf) if measure == "loss_obs" else (100.0, 1, 1.0)
-    mean, low, high = interval(values)
-    low, high = max(low, 0.0), min(high, top)  # NaN (one seed) stays NaN
-    per_seed = " / ".join(f"{v * scale:.{digits}f}" for v in values)
-    return f"{fmt(mean, low, high, digits=digits, scale=scale)} ({per_seed})"
+    """Mean [95% t interval, clipped to the measure's range] (per seed)."""
+    per_seed = " / ".join(probe_fmt((v, np.nan, np.nan), measure) for v in values)
+    return f"{probe_fmt(probe_interval(values, measure), measure)} ({per_seed})"
 
 
 def markdown(result: dict) -> str:

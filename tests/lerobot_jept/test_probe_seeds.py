@@ -44,9 +44,8 @@ def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
     demos = [probe_output(c, {"open": 0.1, "other": 0.3}) for c in (0.20, 0.25, 0.30)]  # range 0.10
     close = [probe_output(c, {"open": 0.5}) for c in (0.36, 0.40, 0.44)]  # mean 0.40, range 0.08
     result = compare_arms({"videos": close, "demos": demos}, "close")
-    assert result["arms"]["demos"]["task"]["swap_changed"] == pytest.approx(
-        [0.2] * 3
-    )  # mean over scene-mates
+    # a per-scene-mate measure is the mean over the task's scene-mates
+    assert result["arms"]["demos"]["task"]["swap_changed"] == pytest.approx([0.2] * 3)
     assert result["bar"]["margin"] == pytest.approx(0.15) and result["bar"]["spread"] == pytest.approx(0.10)
     assert result["bar"]["met"]
     assert "the bar (a margin larger than the spread) is met" in markdown(result)
@@ -59,6 +58,5 @@ def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
     text = markdown(result)
     assert "is not met" in text
     assert "| control whole (%) | 40.0 [" in text and "20.0 [0.0, " in text  # intervals clipped to [0, 100]
-    assert not compare_arms({"demos": demos, "videos": close}, "close")["bar"][
-        "met"
-    ]  # the first arm must lead
+    reversed_arms = compare_arms({"demos": demos, "videos": close}, "close")
+    assert not reversed_arms["bar"]["met"]  # the first arm must lead
