@@ -20,6 +20,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from lerobot_jept.envs.spec import ACTION_LABELLED
 
 PHASE_SCHEDULES = ("alternate", "joint")
+IDM_INPUTS = ("embedding", "self_state")
 
 
 def installed_version() -> str:
@@ -91,6 +92,18 @@ class JEPTConfig(PreTrainedConfig):
         action_dim: action size; taken from the dataset's ``action`` feature, needed only for datasets without
             one (expert videos alone).
         action_loss_weight: c in eq. 9 (8).
+        idm_input: what Gamma_act reads. "embedding" (the paper): the predictor's hidden states of the h_{t+1}
+            tokens. "self_state" (not in the paper): a head Gamma_state predicts the self-state change
+            s_{t+1} - s_t from the o_t tokens' hidden states (learned from demos and videos alike, with weight
+            ``state_loss_weight``), and the inverse dynamics is an MLP from (s_t, s_{t+1} - s_t) to the action
+            bins, trained on the demos' real changes and run on the predicted one. The self-state is the part of
+            the observation whose change tells the action in every scene, so this inverse dynamics carries
+            over to the video-only tasks (docs/prompt_collapse.md, section 16).
+        state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
+            divided by its running RMS); used with ``idm_input="self_state"`` only.
+        prompt_swap_state_weight: not in the paper; with ``idm_input="self_state"`` and the swap term on, the
+            swap hinge also asks Gamma_state's error to be ``prompt_swap_margin`` higher under the other
+            task's prompt, so the change the action is read from depends on the prompt. 0 turns it off.
         ema_decay: decay of the EMA target encoder (the paper does not give it; I-JEPA's 0.996).
         phase_schedule: "alternate" (Algorithm 1: encoder-only phases and other-components phases) or "joint".
         phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch: set frames / batch size).
@@ -186,6 +199,9 @@ class JEPTConfig(PreTrainedConfig):
     action_dim: int | None = None
 
     action_loss_weight: float = 8.0
+    idm_input: str = "embedding"
+    state_loss_weight: float = 1.0
+    prompt_swap_state_weight: float = 0.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
     phase_steps: int = 1000
@@ -225,6 +241,11 @@ class JEPTConfig(PreTrainedConfig):
             raise ValueError(
                 f"phase_schedule must be one of {PHASE_SCHEDULES}, got {self.phase_schedule!r}: "
                 "pass --policy.phase_schedule=alternate (Algorithm 1) or joint."
+            )
+        if self.idm_input not in IDM_INPUTS:
+            raise ValueError(
+                f"idm_input must be one of {IDM_INPUTS}, got {self.idm_input!r}: pass "
+                "--policy.idm_input=embedding (the paper) or self_state."
             )
         if self.n_obs_steps < 1:
             raise ValueError(f"n_obs_steps (the context length k) must be >= 1, got {self.n_obs_steps}.")

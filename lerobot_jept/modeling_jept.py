@@ -20,7 +20,7 @@ from torch import Tensor, nn
 
 from lerobot_jept.components.alignment import PromptAlignment
 from lerobot_jept.components.encoders import JointEmbeddingEncoder
-from lerobot_jept.components.predictor import CausalPredictor, ObservationHead
+from lerobot_jept.components.predictor import CausalPredictor, ObservationHead, SelfStateInverseDynamics
 from lerobot_jept.configuration_jept import JEPTConfig
 from lerobot_jept.policy_base import (
     IGNORE_INDEX,
@@ -80,7 +80,19 @@ class JEPT(VisualPolicyNet):
             config.obs_head_hidden_dim,
             config.obs_head_layers,
         )
-        self.action_head = make_action_head(config, config.predictor_dim)
+        # Gamma_act: on the h_{t+1} tokens' hidden states (the paper), or the self-state's inverse dynamics.
+        self.action_head, self.state_dynamics = None, None
+        if config.idm_input == "self_state":
+            self.state_dynamics = SelfStateInverseDynamics(
+                config.predictor_dim,
+                config.input_features[OBS_STATE].shape[0],
+                config.resolved_action_dim,
+                config.num_action_bins,
+                config.obs_head_hidden_dim,
+                config.obs_head_layers,
+            )
+        else:
+            self.action_head = make_action_head(config, config.predictor_dim)
 
         # Prompt-trajectory alignment (config.prompt_align_weight): projections of pooled E_prt and of pooled
         # target joint embeddings into one space, where prompts of a task meet that task's trajectories.
@@ -88,24 +100,31 @@ class JEPT(VisualPolicyNet):
 
     def phase_modules(self) -> dict[str, list[nn.Module]]:
         """Algorithm 1's two phases: the joint embedding encoder, and every other trained component."""
-        return {
-            "encoder": [self.encoder],
-            "others": [
-                self.prompt_encoder,
-                self.predictor,
-                self.obs_head,
-                self.action_head,
-                self.prompt_align,
-            ],
-        }
+        return {"encoder": [self.encoder], "others": [self.prompt_encoder, *self.heads(), self.prompt_align]}
+
+    def heads(self) -> list[nn.Module]:
+        """The predictor and its heads (the ``optimizer_lr_predictor`` group)."""
+        gamma_act = self.action_head if self.state_dynamics is None else self.state_dynamics
+        return [self.predictor, self.obs_head, gamma_act]
 
     def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
         return self.tokenize(self.encoder.tokenizer, self.backbone_tokens(images), state)
 
-    def predict(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
-        """Predicted joint embeddings (B, k, N, J) from the obs tokens and action logits (B, k, A, bins)."""
+    def predict(
+        self, prompt: Tensor | None, obs: Tensor, emb: Tensor, state: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """Predicted joint embeddings (B, k, N, J) from the obs tokens, action logits (B, k, A, bins) and, with
+        ``idm_input="self_state"``, the predicted self-state changes (B, k, S) (else None). There the inverse
+        dynamics reads the real changes of ``state`` (B, k + 1, S), as the paper's reads the real h_{t+1}
+        (no logits without it)."""
         z_obs, z_emb = self.predictor(prompt, obs, emb)
-        return self.obs_head(z_obs), self.action_head(z_emb)
+        pred_h = self.obs_head(z_obs)
+        sd = self.state_dynamics
+        if sd is None:
+            return pred_h, self.action_head(z_emb), None
+        k = obs.shape[1]
+        logits = None if state is None else sd(state[:, :k], sd.change_of(state[:, : k + 1]))
+        return pred_h, logits, sd.predict_change(z_obs)
 
     @torch.no_grad()
     def update_target(self, decay: float) -> None:
@@ -128,7 +147,7 @@ class JEPTPolicy(DiscreteActionPolicy):
             [
                 (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
                 (cfg.optimizer_lr_prompt, [m.prompt_encoder, m.prompt_align]),
-                (cfg.optimizer_lr_predictor, [m.predictor, m.obs_head, m.action_head]),
+                (cfg.optimizer_lr_predictor, m.heads()),
             ]
         )
 
@@ -160,13 +179,22 @@ class JEPTPolicy(DiscreteActionPolicy):
         tokens, obs, h_in = self._encode_window(batch)
         targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
-        pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
+        if self.training and m.state_dynamics is not None:
+            m.state_dynamics.update_scale(batch[OBS_STATE])
+        pred_h, logits, change = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
         loss_obs, dist, frame_ok = self._obs_loss(batch, pred_h, targets)
 
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
         loss_act, labelled = self.action_loss(logits, batch)
         per_sample = loss_obs + cfg.action_loss_weight * loss_act
-        extra, extra_info = self._prompt_losses(batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok)
+        state_error = None if change is None else self._state_error(batch, change)
+        extra, extra_info = self._prompt_losses(
+            batch, prompt, obs[:, :k], h_in, targets, (dist, state_error), frame_ok
+        )
+        if state_error is not None:  # Gamma_state (idm_input=self_state), every frame with a real next one
+            loss_state = frame_mean(state_error, frame_ok)
+            extra = extra + cfg.state_loss_weight * loss_state
+            extra_info["loss_state"] = loss_state.mean().item()
         per_sample = per_sample + extra
         info = {
             "loss_obs": loss_obs.mean().item(),
@@ -181,11 +209,17 @@ class JEPTPolicy(DiscreteActionPolicy):
         loss_act_mean = self.labelled_mean(loss_act, labelled)
         return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean + extra.mean(), info
 
-    def _prompt_losses(self, batch, prompt, obs, h_in, targets, dist, frame_ok) -> tuple[Tensor, dict]:
-        """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``), per
-        sample (B,). Both train the components of Algorithm 1's second phase only, so they are computed when
-        that phase (or the joint schedule) is on and the prompt is past its warm-up."""
+    def _state_error(self, batch: dict[str, Tensor], change: Tensor) -> Tensor:
+        """Gamma_state's squared error per frame (B, k), in units of the changes' running RMS."""
+        return (change - self.model.state_dynamics.change_of(batch[OBS_STATE])).pow(2).mean(-1)
+
+    def _prompt_losses(self, batch, prompt, obs, h_in, targets, errors, frame_ok) -> tuple[Tensor, dict]:
+        """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``,
+        ``prompt_swap_state_weight``), per sample (B,). They train the components of Algorithm 1's second phase
+        only, so they are computed when that phase (or the joint schedule) is on and the prompt is past its
+        warm-up. ``errors``: the per-frame L_obs distances (B, k) and Gamma_state's errors (B, k) or None."""
         cfg, m = self.config, self.model
+        dist, state_error = errors
         zero = dist.new_zeros(dist.shape[0])
         if prompt is None or (self.training and self.phase == "encoder"):
             return zero, {}
@@ -204,13 +238,19 @@ class JEPTPolicy(DiscreteActionPolicy):
             steps = torch.arange(n, device=dist.device)
             swap_to = torch.where(other, (steps[None, :] - steps[:, None]) % n, n).argmin(-1)
             has_other = other.any(-1).float()
-            pred_swapped, _ = m.predict(prompt[swap_to], obs, h_in)
+            pred_swapped, _, change_swapped = m.predict(prompt[swap_to], obs, h_in)
             dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
             gap = frame_mean(dist_swapped - dist, frame_ok)
             swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
             extra = extra + cfg.prompt_swap_weight * swap
             info["loss_prompt_swap"] = swap.mean().item()
             info["prompt_swap_gap"] = gap.mean().item()
+            if state_error is not None and cfg.prompt_swap_state_weight > 0:
+                # The same hinge on the self-state change, which the action is read from (idm_input=self_state).
+                gap_state = frame_mean(self._state_error(batch, change_swapped) - state_error, frame_ok)
+                swap_state = F.relu(cfg.prompt_swap_margin - gap_state) * has_other
+                extra = extra + cfg.prompt_swap_state_weight * swap_state
+                info["prompt_swap_state_gap"] = gap_state.mean().item()
         return extra, info
 
     @torch.no_grad()
@@ -238,10 +278,14 @@ class JEPTPolicy(DiscreteActionPolicy):
         tokens, obs, h_in = self._encode_window(batch)
         targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
-        pred_h, logits = m.predict(prompt, obs[:, :k], h_in)
-        z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
+        pred_h, logits, change = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
+        if change is None:
+            z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
+            control = m.action_head(z_next[:, None])[:, 0]
+        else:  # o_t's hidden states never see h_{t+1}: the change predicted here is the one control acts on
+            control = m.state_dynamics(batch[OBS_STATE][:, k - 1], change[:, -1])
         return {
-            "control": m.action_head(z_next[:, None])[:, 0],
+            "control": control,
             "inverse": logits[:, -1],
             "loss_obs": self._obs_loss(batch, pred_h, targets)[0],
         }
@@ -277,12 +321,14 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
-        if cfg.cache_frame_tokens:
+        if m.state_dynamics is not None:  # the inverse dynamics of the predicted self-state change
+            change = m.predict(prompt, obs, h_past)[2]
+            logits = m.state_dynamics(batch[OBS_STATE], change[:, -1])
+        elif cfg.cache_frame_tokens:
             z_next = m.predictor.forward_last_step(prompt, obs, h_past, m.obs_head)
             logits = m.action_head(z_next[:, None])[:, 0]
         else:  # the reference: two full passes, h_{t+1} predicted by the first and fed back into the second
             placeholder = torch.zeros_like(obs[:, :1, :, : cfg.joint_embedding_dim])
-            pred_h, _ = m.predict(prompt, obs, torch.cat([h_past, placeholder], 1))
-            _, logits = m.predict(prompt, obs, torch.cat([h_past, pred_h[:, -1:]], 1))
-            logits = logits[:, -1]
+            pred_h = m.predict(prompt, obs, torch.cat([h_past, placeholder], 1))[0]
+            logits = m.predict(prompt, obs, torch.cat([h_past, pred_h[:, -1:]], 1))[1][:, -1]
         return self.bin_centres[logits.argmax(-1)]

@@ -156,3 +156,39 @@ class ActionHead(nn.Module):
         for block in self.blocks:
             q = block(q, context)
         return rearrange(self.out(q), "(b k) a c -> b k a c", b=b)
+
+
+class SelfStateInverseDynamics(nn.Module):
+    """``idm_input="self_state"``: Gamma_state predicts the self-state change s_{t+1} - s_t (each dimension in
+    units of its running RMS) from the o_t tokens' hidden states, and an MLP maps (s_t, change) to action logits.
+
+    ``change_of`` (B, T + 1, S) states -> (B, T, S) scaled changes; ``predict_change`` (B, T, N, width) ->
+    (B, T, S); ``forward`` (..., S) states and (..., S) changes -> logits (..., action_dim, num_bins).
+    """
+
+    def __init__(
+        self, width: int, state_dim: int, action_dim: int, num_bins: int, hidden_dim: int, layers: int
+    ):
+        super().__init__()
+        self.change_head = ObservationHead(width, state_dim, hidden_dim, layers)
+        self.inverse = ObservationHead(2 * state_dim, action_dim * num_bins, hidden_dim, layers)
+        self.action_dim = action_dim
+        self.register_buffer("scale", torch.ones(state_dim))
+        self.register_buffer("scale_updates", torch.zeros((), dtype=torch.long))
+
+    @torch.no_grad()
+    def update_scale(self, state: Tensor, momentum: float = 0.01) -> None:
+        """Training: move the per-dimension RMS of the changes towards this batch's (the first batch sets it)."""
+        rms = (state[:, 1:] - state[:, :-1]).pow(2).mean((0, 1)).sqrt().clamp_min(1e-6)
+        self.scale.copy_(rms if self.scale_updates == 0 else self.scale.lerp(rms, momentum))
+        self.scale_updates += 1
+
+    def change_of(self, state: Tensor) -> Tensor:
+        return (state[:, 1:] - state[:, :-1]) / self.scale
+
+    def predict_change(self, z_obs: Tensor) -> Tensor:
+        return self.change_head(z_obs.mean(-2))
+
+    def forward(self, state: Tensor, change: Tensor) -> Tensor:
+        logits = self.inverse(torch.cat([state, change], dim=-1))
+        return rearrange(logits, "... (a c) -> ... a c", a=self.action_dim)

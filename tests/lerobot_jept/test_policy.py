@@ -376,3 +376,73 @@ def test_validate_features_action_checks():
     tiny_config(
         input_features=inputs, output_features={}, action_dim=4
     ).validate_features()  # expert videos only
+
+
+def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_change(tiny_build, tmp_path):
+    """idm_input=self_state: Gamma_state learns the self-state change on every frame, the inverse dynamics learns
+    the actions from the real change, and control acts on the predicted change: select_action over an episode's
+    frames gives what offline_outputs' control gives on the same window; the running scale is saved."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    policy, pre, _ = build_policy(tiny_build, idm_input="self_state")
+    assert policy.model.action_head is None and policy.model.state_dynamics is not None
+    batch = pre(mixed_batch(policy.config, size=4, seed=3))
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-3)
+    policy.train()
+    first = policy.forward(batch)[1]
+    assert {"loss_state", "loss_act", "loss_obs"} <= set(first)
+    for _ in range(40):
+        loss, info = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        policy.update()
+    assert info["loss_act"] < 0.5 * first["loss_act"]
+    assert info["loss_state"] < 0.5 * first["loss_state"]
+    scale = policy.model.state_dynamics.scale
+    assert int(policy.model.state_dynamics.scale_updates) == 41 and not torch.allclose(
+        scale, torch.ones_like(scale)
+    )
+
+    policy.eval()
+    k = policy.config.n_obs_steps
+    ds = load(MIX, delta_timestamps=resolve_delta_timestamps(policy.config, LeRobotDatasetMetadata(MIX)))
+    start = ds.meta.episodes[0]["dataset_from_index"]
+    window = pre(torch.utils.data.default_collate([ds[start + k - 1]]))  # frames 0..k: context 0..k-1
+    offline = policy.offline_outputs(window)["control"].argmax(-1)
+    policy.reset()
+    for i in range(k):
+        obs = {key: window[key][:, i] for key in ("observation.image", "observation.state")}
+        action = policy.select_action({**obs, PROMPT_VIDEO: window[PROMPT_VIDEO]})
+    torch.testing.assert_close(action, policy.bin_centres[offline])
+
+    policy.save_pretrained(tmp_path)
+    reloaded = JEPTPolicy.from_pretrained(tmp_path).eval()
+    torch.testing.assert_close(reloaded.model.state_dynamics.scale, scale)
+    torch.testing.assert_close(
+        reloaded.offline_outputs(window)["control"], policy.offline_outputs(window)["control"]
+    )
+
+
+def test_state_swap_term_asks_the_change_to_depend_on_the_prompt(tiny_build, policy_and_batch):
+    """prompt_swap_state_weight adds, per sample, w * relu(margin - gap) where gap is Gamma_state's error under
+    another task's prompt minus its error under its own; it reaches Gamma_state; an unknown idm_input is named."""
+    *_, batch = policy_and_batch
+    losses = {}
+    for weight in (0.0, 2.0):
+        policy, _, _ = build_policy(
+            tiny_build, idm_input="self_state", prompt_align_weight=0.0, prompt_swap_state_weight=weight
+        )
+        policy.eval()
+        losses[weight] = policy.forward(batch, reduction="none")
+    (off, info_off), (on, info_on) = losses[0.0], losses[2.0]
+    assert "prompt_swap_state_gap" not in info_off
+    margin, gap = policy.config.prompt_swap_margin, info_on["prompt_swap_state_gap"]
+    added = on - off  # the same weights (seed 0), so only the term differs
+    assert (added >= -1e-6).all() and added.max() > 0
+    assert added.mean().item() >= 2.0 * (margin - gap) - 1e-4  # mean of relu(x) >= mean of x
+    on.mean().backward()
+    head = policy.model.state_dynamics.change_head
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
+    with pytest.raises(ValueError, match="--policy.idm_input=embedding"):
+        tiny_config(idm_input="state")
