@@ -101,9 +101,6 @@ class JEPTConfig(PreTrainedConfig):
             over to the video-only tasks (docs/prompt_collapse.md, section 16).
         state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
             divided by its running RMS); used with ``idm_input="self_state"`` only.
-        prompt_swap_state_weight: not in the paper; with ``idm_input="self_state"`` and the swap term on, the
-            swap hinge also asks Gamma_state's error to be ``prompt_swap_margin`` higher under the other
-            task's prompt, so the change the action is read from depends on the prompt. 0 turns it off.
         ema_decay: decay of the EMA target encoder (the paper does not give it; I-JEPA's 0.996).
         phase_schedule: "alternate" (Algorithm 1: encoder-only phases and other-components phases) or "joint".
         phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch: set frames / batch size).
@@ -201,7 +198,6 @@ class JEPTConfig(PreTrainedConfig):
     action_loss_weight: float = 8.0
     idm_input: str = "embedding"
     state_loss_weight: float = 1.0
-    prompt_swap_state_weight: float = 0.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
     phase_steps: int = 1000

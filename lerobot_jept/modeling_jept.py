@@ -187,12 +187,10 @@ class JEPTPolicy(DiscreteActionPolicy):
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
         loss_act, labelled = self.action_loss(logits, batch)
         per_sample = loss_obs + cfg.action_loss_weight * loss_act
-        state_error = None if change is None else self._state_error(batch, change)
-        extra, extra_info = self._prompt_losses(
-            batch, prompt, obs[:, :k], h_in, targets, (dist, state_error), frame_ok
-        )
-        if state_error is not None:  # Gamma_state (idm_input=self_state), every frame with a real next one
-            loss_state = frame_mean(state_error, frame_ok)
+        extra, extra_info = self._prompt_losses(batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok)
+        if change is not None:  # Gamma_state (idm_input=self_state), on every frame with a real next one
+            error = (change - m.state_dynamics.change_of(batch[OBS_STATE])).pow(2).mean(-1)
+            loss_state = frame_mean(error, frame_ok)
             extra = extra + cfg.state_loss_weight * loss_state
             extra_info["loss_state"] = loss_state.mean().item()
         per_sample = per_sample + extra
@@ -209,17 +207,11 @@ class JEPTPolicy(DiscreteActionPolicy):
         loss_act_mean = self.labelled_mean(loss_act, labelled)
         return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean + extra.mean(), info
 
-    def _state_error(self, batch: dict[str, Tensor], change: Tensor) -> Tensor:
-        """Gamma_state's squared error per frame (B, k), in units of the changes' running RMS."""
-        return (change - self.model.state_dynamics.change_of(batch[OBS_STATE])).pow(2).mean(-1)
-
-    def _prompt_losses(self, batch, prompt, obs, h_in, targets, errors, frame_ok) -> tuple[Tensor, dict]:
-        """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``,
-        ``prompt_swap_state_weight``), per sample (B,). They train the components of Algorithm 1's second phase
-        only, so they are computed when that phase (or the joint schedule) is on and the prompt is past its
-        warm-up. ``errors``: the per-frame L_obs distances (B, k) and Gamma_state's errors (B, k) or None."""
+    def _prompt_losses(self, batch, prompt, obs, h_in, targets, dist, frame_ok) -> tuple[Tensor, dict]:
+        """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``), per
+        sample (B,). Both train the components of Algorithm 1's second phase only, so they are computed when
+        that phase (or the joint schedule) is on and the prompt is past its warm-up."""
         cfg, m = self.config, self.model
-        dist, state_error = errors
         zero = dist.new_zeros(dist.shape[0])
         if prompt is None or (self.training and self.phase == "encoder"):
             return zero, {}
@@ -238,19 +230,13 @@ class JEPTPolicy(DiscreteActionPolicy):
             steps = torch.arange(n, device=dist.device)
             swap_to = torch.where(other, (steps[None, :] - steps[:, None]) % n, n).argmin(-1)
             has_other = other.any(-1).float()
-            pred_swapped, _, change_swapped = m.predict(prompt[swap_to], obs, h_in)
+            pred_swapped = m.predict(prompt[swap_to], obs, h_in)[0]
             dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
             gap = frame_mean(dist_swapped - dist, frame_ok)
             swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
             extra = extra + cfg.prompt_swap_weight * swap
             info["loss_prompt_swap"] = swap.mean().item()
             info["prompt_swap_gap"] = gap.mean().item()
-            if state_error is not None and cfg.prompt_swap_state_weight > 0:
-                # The same hinge on the self-state change, which the action is read from (idm_input=self_state).
-                gap_state = frame_mean(self._state_error(batch, change_swapped) - state_error, frame_ok)
-                swap_state = F.relu(cfg.prompt_swap_margin - gap_state) * has_other
-                extra = extra + cfg.prompt_swap_state_weight * swap_state
-                info["prompt_swap_state_gap"] = gap_state.mean().item()
         return extra, info
 
     @torch.no_grad()

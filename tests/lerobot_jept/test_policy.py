@@ -424,25 +424,6 @@ def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_chan
     )
 
 
-def test_state_swap_term_asks_the_change_to_depend_on_the_prompt(tiny_build, policy_and_batch):
-    """prompt_swap_state_weight adds, per sample, w * relu(margin - gap) where gap is Gamma_state's error under
-    another task's prompt minus its error under its own; it reaches Gamma_state; an unknown idm_input is named."""
-    *_, batch = policy_and_batch
-    losses = {}
-    for weight in (0.0, 2.0):
-        policy, _, _ = build_policy(
-            tiny_build, idm_input="self_state", prompt_align_weight=0.0, prompt_swap_state_weight=weight
-        )
-        policy.eval()
-        losses[weight] = policy.forward(batch, reduction="none")
-    (off, info_off), (on, info_on) = losses[0.0], losses[2.0]
-    assert "prompt_swap_state_gap" not in info_off
-    margin, gap = policy.config.prompt_swap_margin, info_on["prompt_swap_state_gap"]
-    added = on - off  # the same weights (seed 0), so only the term differs
-    assert (added >= -1e-6).all() and added.max() > 0
-    assert added.mean().item() >= 2.0 * (margin - gap) - 1e-4  # mean of relu(x) >= mean of x
-    on.mean().backward()
-    head = policy.model.state_dynamics.change_head
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
+def test_idm_input_must_be_known():
     with pytest.raises(ValueError, match="--policy.idm_input=embedding"):
         tiny_config(idm_input="state")
