@@ -294,18 +294,24 @@ def test_cached_and_uncached_control_give_the_same_actions(tiny_build):
         assert (post(a)[..., None] - centres).abs().min(-1).values.max() < 1e-6  # executed: bin centres
 
 
-def test_overfits_a_tiny_batch(tiny_build):
-    policy, pre, _ = build_policy(tiny_build)
+def overfit(policy, pre, steps: int = 40) -> tuple[dict, dict]:
+    """AdamW steps on one small mixed batch -> the loss info of the first forward and of the last."""
     batch = pre(mixed_batch(policy.config, size=4, seed=3))
     optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-3)
     policy.train()
     first = policy.forward(batch)[1]
-    for _ in range(40):
+    for _ in range(steps):
         loss, info = policy.forward(batch)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
         policy.update()
+    return first, info
+
+
+def test_overfits_a_tiny_batch(tiny_build):
+    policy, pre, _ = build_policy(tiny_build)
+    first, info = overfit(policy, pre)
     assert info["loss_act"] < 0.5 * first["loss_act"]
     assert info["loss_obs"] < first["loss_obs"]
 
@@ -386,17 +392,8 @@ def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_chan
 
     policy, pre, _ = build_policy(tiny_build, idm_input="self_state")
     assert policy.model.action_head is None and policy.model.state_dynamics is not None
-    batch = pre(mixed_batch(policy.config, size=4, seed=3))
-    optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-3)
-    policy.train()
-    first = policy.forward(batch)[1]
+    first, info = overfit(policy, pre)
     assert {"loss_state", "loss_act", "loss_obs"} <= set(first)
-    for _ in range(40):
-        loss, info = policy.forward(batch)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        policy.update()
     assert info["loss_act"] < 0.5 * first["loss_act"]
     assert info["loss_state"] < 0.5 * first["loss_state"]
     scale = policy.model.state_dynamics.scale
