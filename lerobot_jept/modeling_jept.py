@@ -258,8 +258,9 @@ class JEPTPolicy(DiscreteActionPolicy):
     @torch.no_grad()
     def offline_outputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """On a preprocessed training-shaped batch (k + 1 frames): logits (B, A, bins) of a_t for the last
-        context frame, ``control`` from the predicted h_{t+1} (what ``select_action`` chooses) and ``inverse``
-        from the real next frame's joint embedding (the inverse dynamics alone); and ``loss_obs`` (B,)."""
+        context frame, ``control`` from the predicted h_{t+1} (with ``idm_input="self_state"``: the predicted
+        self-state change; what ``select_action`` chooses) and ``inverse`` from the real next frame (the inverse
+        dynamics alone); and ``loss_obs`` (B,)."""
         m, k = self.model, self.config.n_obs_steps
         tokens, obs, h_in = self._encode_window(batch)
         targets = self._targets(batch, tokens)
@@ -307,9 +308,9 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
-        if m.state_dynamics is not None:  # the inverse dynamics of the predicted self-state change
-            change = m.predict(prompt, obs, h_past)[2]
-            logits = m.state_dynamics(batch[OBS_STATE], change[:, -1])
+        if m.state_dynamics is not None:  # the inverse dynamics of the change predicted from o_t's tokens
+            z_obs, _ = m.predictor(prompt, obs, h_past)
+            logits = m.state_dynamics(batch[OBS_STATE], m.state_dynamics.predict_change(z_obs[:, -1]))
         elif cfg.cache_frame_tokens:
             z_next = m.predictor.forward_last_step(prompt, obs, h_past, m.obs_head)
             logits = m.action_head(z_next[:, None])[:, 0]
