@@ -424,3 +424,40 @@ def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_chan
 def test_idm_input_must_be_known():
     with pytest.raises(ValueError, match="--policy.idm_input=embedding"):
         tiny_config(idm_input="state")
+
+
+def test_scene_dropout_hides_the_scene_from_the_predictor_in_training_only(tiny_build, policy_and_batch):
+    """scene_dropout = 1: in training the predictor's inputs keep only the self-state tokens, so no loss reaches
+    the frame Perceiver (the scene's path) while the self-state's does; a share p of the samples is dropped,
+    each whole; in eval mode the option changes nothing."""
+    *_, batch = policy_and_batch
+    grads, outputs = {}, {}
+    for p in (0.0, 1.0):
+        policy, _, _ = build_policy(tiny_build, scene_dropout=p)
+        policy.train()
+        policy.forward(batch)[0].backward()
+        tokenizer = policy.model.encoder.tokenizer
+        grads[p] = [
+            sum(float(q.grad.abs().sum()) for q in part.parameters() if q.grad is not None)
+            for part in (tokenizer.perceiver, tokenizer.state_mlp)
+        ]
+        policy.eval()
+        outputs[p] = policy.offline_outputs(batch)
+    assert grads[0.0][0] > 0 and grads[1.0][0] == 0
+    assert grads[1.0][1] > 0
+    for key in outputs[0.0]:
+        torch.testing.assert_close(outputs[0.0][key], outputs[1.0][key])
+
+    policy.config.scene_dropout = 0.5
+    policy.train()
+    torch.manual_seed(0)
+    obs, h_in = policy._drop_scene(torch.ones(2000, 3, 5, 8), torch.ones(2000, 3, 5, 6))
+    dropped = obs[:, :, :-1].sum((1, 2, 3)) == 0
+    assert 0.45 < dropped.float().mean() < 0.55
+    assert (obs[:, :, -1] == 1).all() and (obs[~dropped] == 1).all()
+    assert (h_in[dropped] == 0).all() and (h_in[~dropped] == 1).all()
+
+
+def test_scene_dropout_must_be_a_share():
+    with pytest.raises(ValueError, match="scene_dropout"):
+        tiny_config(scene_dropout=1.5)
