@@ -116,10 +116,6 @@ class JEPTConfig(PreTrainedConfig):
             ``prompt_swap_margin`` higher under the wrong prompt, so the predictor must read the prompt. Both
             terms train only Algorithm 1's second phase (prompt encoder, predictor, heads) after the prompt
             warm-up. Both weights 0 is the paper's objective exactly.
-        scene_dropout: not in the paper (0 = the paper). The share of training samples whose predictor input
-            keeps only the self-state tokens and the prompt (the observations' visual tokens and the joint
-            embeddings h_2..h_k zeroed): where the scene alone identifies the task, the predictor then has to
-            learn the task from the prompt (docs/prompt_collapse.md, section 17). Evaluation is unchanged.
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
@@ -210,7 +206,6 @@ class JEPTConfig(PreTrainedConfig):
     prompt_align_temperature: float = 0.1
     prompt_swap_weight: float = 1.0
     prompt_swap_margin: float = 0.5
-    scene_dropout: float = 0.0
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5
@@ -248,8 +243,6 @@ class JEPTConfig(PreTrainedConfig):
                 f"idm_input must be one of {IDM_INPUTS}, got {self.idm_input!r}: pass "
                 "--policy.idm_input=embedding (the paper) or self_state."
             )
-        if not 0.0 <= self.scene_dropout <= 1.0:
-            raise ValueError(f"scene_dropout is a share of samples in [0, 1], got {self.scene_dropout}.")
         if self.n_obs_steps < 1:
             raise ValueError(f"n_obs_steps (the context length k) must be >= 1, got {self.n_obs_steps}.")
         if self.num_action_bins < 2:

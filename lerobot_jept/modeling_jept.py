@@ -181,7 +181,6 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.prompt(batch) if self.prompt_active else None
         if self.training and m.state_dynamics is not None:
             m.state_dynamics.update_scale(batch[OBS_STATE])
-        obs, h_in = self._drop_scene(obs, h_in)
         pred_h, logits, change = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
         loss_obs, dist, frame_ok = self._obs_loss(batch, pred_h, targets)
 
@@ -207,17 +206,6 @@ class JEPTPolicy(DiscreteActionPolicy):
             return per_sample, info
         loss_act_mean = self.labelled_mean(loss_act, labelled)
         return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean + extra.mean(), info
-
-    def _drop_scene(self, obs: Tensor, h_in: Tensor) -> tuple[Tensor, Tensor]:
-        """``scene_dropout`` (training only): for that share of the samples the predictor's inputs keep the
-        self-state token of each observation (the last) and nothing of the scene: the visual tokens and the
-        joint embeddings are zeroed. The targets are untouched."""
-        p = self.config.scene_dropout
-        if not (self.training and p > 0):
-            return obs, h_in
-        drop = (torch.rand(obs.shape[0], device=obs.device) < p)[:, None, None, None]
-        visual = torch.arange(obs.shape[2], device=obs.device) < obs.shape[2] - 1
-        return obs.masked_fill(drop & visual[:, None], 0.0), h_in.masked_fill(drop, 0.0)
 
     def _prompt_losses(self, batch, prompt, obs, h_in, targets, dist, frame_ok) -> tuple[Tensor, dict]:
         """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``), per
