@@ -116,6 +116,13 @@ class JEPTConfig(PreTrainedConfig):
             ``prompt_swap_margin`` higher under the wrong prompt, so the predictor must read the prompt. Both
             terms train only Algorithm 1's second phase (prompt encoder, predictor, heads) after the prompt
             warm-up. Both weights 0 is the paper's objective exactly.
+        prompt_dropout, prompt_guidance: not in the paper; classifier-free guidance (Ho and Salimans, 2022) on
+            the prompt. In training, each sample's E_prt is replaced by a learned null prompt with probability
+            ``prompt_dropout``, so the predictor also learns what to do without a prompt. In control, the
+            prediction x under the prompt (the self-state change with ``idm_input="self_state"``, else the
+            action logits) becomes x + ``prompt_guidance`` * (x - x_null), x_null the prediction under the
+            null prompt: what the prompt adds is amplified. 0 and 0 is the paper; guidance needs a checkpoint
+            trained with ``prompt_dropout`` > 0 and can be set at evaluation (``--policy.prompt_guidance``).
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
@@ -206,6 +213,8 @@ class JEPTConfig(PreTrainedConfig):
     prompt_align_temperature: float = 0.1
     prompt_swap_weight: float = 1.0
     prompt_swap_margin: float = 0.5
+    prompt_dropout: float = 0.0
+    prompt_guidance: float = 0.0
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5
@@ -242,6 +251,15 @@ class JEPTConfig(PreTrainedConfig):
             raise ValueError(
                 f"idm_input must be one of {IDM_INPUTS}, got {self.idm_input!r}: pass "
                 "--policy.idm_input=embedding (the paper) or self_state."
+            )
+        if not 0.0 <= self.prompt_dropout < 1.0:
+            raise ValueError(f"prompt_dropout is a probability in [0, 1), got {self.prompt_dropout}.")
+        if self.prompt_guidance < 0:
+            raise ValueError(f"prompt_guidance must be >= 0 (0: no guidance), got {self.prompt_guidance}.")
+        if self.prompt_guidance and not self.prompt_dropout:
+            raise ValueError(
+                f"prompt_guidance={self.prompt_guidance} needs the null prompt that training with prompt dropout "
+                "learns: train with --policy.prompt_dropout=P (e.g. 0.2), or pass --policy.prompt_guidance=0."
             )
         if self.n_obs_steps < 1:
             raise ValueError(f"n_obs_steps (the context length k) must be >= 1, got {self.n_obs_steps}.")

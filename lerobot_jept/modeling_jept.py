@@ -56,6 +56,18 @@ class JointEmbeddingTarget(nn.Module):
         )
 
 
+class NullPrompt(nn.Module):
+    """The learned E_prt of "no prompt" for classifier-free guidance (``prompt_dropout``)."""
+
+    def __init__(self, tokens: int, dim: int):
+        super().__init__()
+        self.tokens = nn.Parameter(torch.randn(tokens, dim) * 0.02)
+
+    def forward(self, like: Tensor) -> Tensor:
+        """The null prompt in the shape of the prompt encodings ``like`` (B, N_prt, D)."""
+        return self.tokens.expand_as(like)
+
+
 class JEPT(VisualPolicyNet):
     """The network: backbone, Psi_obs (online and EMA target), Psi_prt, Psi_pred, Gamma_obs, Gamma_act."""
 
@@ -94,13 +106,25 @@ class JEPT(VisualPolicyNet):
         else:
             self.action_head = make_action_head(config, config.predictor_dim)
 
+        # Classifier-free guidance (config.prompt_dropout): the learned E_prt of "no prompt".
+        self.null_prompt = (
+            NullPrompt(config.prompt_perceiver_queries, config.perceiver_dim)
+            if config.prompt_dropout > 0
+            else None
+        )
+
         # Prompt-trajectory alignment (config.prompt_align_weight): projections of pooled E_prt and of pooled
         # target joint embeddings into one space, where prompts of a task meet that task's trajectories.
         self.prompt_align = PromptAlignment(config.perceiver_dim, config.joint_embedding_dim)
 
     def phase_modules(self) -> dict[str, list[nn.Module]]:
         """Algorithm 1's two phases: the joint embedding encoder, and every other trained component."""
-        return {"encoder": [self.encoder], "others": [self.prompt_encoder, *self.heads(), self.prompt_align]}
+        return {"encoder": [self.encoder], "others": [*self.prompt_modules(), *self.heads()]}
+
+    def prompt_modules(self) -> list[nn.Module]:
+        """The prompt encoder and what trains with it (the ``optimizer_lr_prompt`` group)."""
+        null = [] if self.null_prompt is None else [self.null_prompt]
+        return [self.prompt_encoder, self.prompt_align, *null]
 
     def heads(self) -> list[nn.Module]:
         """The predictor and its heads (the ``optimizer_lr_predictor`` group)."""
@@ -146,7 +170,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         return self.lr_groups(
             [
                 (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
-                (cfg.optimizer_lr_prompt, [m.prompt_encoder, m.prompt_align]),
+                (cfg.optimizer_lr_prompt, m.prompt_modules()),
                 (cfg.optimizer_lr_predictor, m.heads()),
             ]
         )
@@ -181,13 +205,16 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.prompt(batch) if self.prompt_active else None
         if self.training and m.state_dynamics is not None:
             m.state_dynamics.update_scale(batch[OBS_STATE])
-        pred_h, logits, change = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
+        prompt_in, kept = self._prompt_dropout(prompt)
+        pred_h, logits, change = m.predict(prompt_in, obs[:, :k], h_in, batch[OBS_STATE])
         loss_obs, dist, frame_ok = self._obs_loss(batch, pred_h, targets)
 
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
         loss_act, labelled = self.action_loss(logits, batch)
         per_sample = loss_obs + cfg.action_loss_weight * loss_act
-        extra, extra_info = self._prompt_losses(batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok)
+        extra, extra_info = self._prompt_losses(
+            batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok, kept
+        )
         if change is not None:  # Gamma_state (idm_input=self_state), on every frame with a real next one
             error = (change - m.state_dynamics.change_of(batch[OBS_STATE])).pow(2).mean(-1)
             loss_state = frame_mean(error, frame_ok)
@@ -207,10 +234,20 @@ class JEPTPolicy(DiscreteActionPolicy):
         loss_act_mean = self.labelled_mean(loss_act, labelled)
         return loss_obs.mean() + cfg.action_loss_weight * loss_act_mean + extra.mean(), info
 
-    def _prompt_losses(self, batch, prompt, obs, h_in, targets, dist, frame_ok) -> tuple[Tensor, dict]:
+    def _prompt_dropout(self, prompt: Tensor | None) -> tuple[Tensor | None, Tensor | float]:
+        """In training, each sample's E_prt replaced by the null prompt with probability ``prompt_dropout``
+        (classifier-free guidance) -> the predictor's prompt input and which samples kept theirs (B,)."""
+        null = self.model.null_prompt
+        if prompt is None or null is None or not self.training:
+            return prompt, 1.0
+        kept = (torch.rand(prompt.shape[0], device=prompt.device) >= self.config.prompt_dropout).float()
+        return torch.where(kept[:, None, None].bool(), prompt, null(prompt)), kept
+
+    def _prompt_losses(self, batch, prompt, obs, h_in, targets, dist, frame_ok, kept) -> tuple[Tensor, dict]:
         """The prompt terms that are not in the paper (``prompt_align_weight``, ``prompt_swap_weight``), per
         sample (B,). Both train the components of Algorithm 1's second phase only, so they are computed when
-        that phase (or the joint schedule) is on and the prompt is past its warm-up."""
+        that phase (or the joint schedule) is on and the prompt is past its warm-up; the swap term only on the
+        samples that kept their prompt (``kept``, see ``prompt_dropout``)."""
         cfg, m = self.config, self.model
         zero = dist.new_zeros(dist.shape[0])
         if prompt is None or (self.training and self.phase == "encoder"):
@@ -233,7 +270,7 @@ class JEPTPolicy(DiscreteActionPolicy):
             pred_swapped = m.predict(prompt[swap_to], obs, h_in)[0]
             dist_swapped = torch.linalg.vector_norm(pred_swapped - targets, dim=-1).mean(-1)
             gap = frame_mean(dist_swapped - dist, frame_ok)
-            swap = F.relu(cfg.prompt_swap_margin - gap) * has_other
+            swap = F.relu(cfg.prompt_swap_margin - gap) * has_other * kept
             extra = extra + cfg.prompt_swap_weight * swap
             info["loss_prompt_swap"] = swap.mean().item()
             info["prompt_swap_gap"] = gap.mean().item()
@@ -265,14 +302,9 @@ class JEPTPolicy(DiscreteActionPolicy):
         tokens, obs, h_in = self._encode_window(batch)
         targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
-        pred_h, logits, change = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
-        if change is None:
-            z_next = m.predictor.forward_last_step(prompt, obs[:, :k], h_in[:, : k - 1], m.obs_head)
-            control = m.action_head(z_next[:, None])[:, 0]
-        else:  # o_t's hidden states never see h_{t+1}: the change predicted here is the one control acts on
-            control = m.state_dynamics(batch[OBS_STATE][:, k - 1], change[:, -1])
+        pred_h, logits, _ = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
         return {
-            "control": control,
+            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], batch[OBS_STATE][:, k - 1]),
             "inverse": logits[:, -1],
             "loss_obs": self._obs_loss(batch, pred_h, targets)[0],
         }
@@ -308,14 +340,26 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
-        if m.state_dynamics is not None:  # the inverse dynamics of the change predicted from o_t's tokens
-            z_obs, _ = m.predictor(prompt, obs, h_past)
-            logits = m.state_dynamics(batch[OBS_STATE], m.state_dynamics.predict_change(z_obs[:, -1]))
-        elif cfg.cache_frame_tokens:
-            z_next = m.predictor.forward_last_step(prompt, obs, h_past, m.obs_head)
-            logits = m.action_head(z_next[:, None])[:, 0]
-        else:  # the reference: two full passes, h_{t+1} predicted by the first and fed back into the second
+        return self.bin_centres[self._control_logits(prompt, obs, h_past, batch[OBS_STATE]).argmax(-1)]
+
+    def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, state: Tensor) -> Tensor:
+        """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and s_t
+        (B, S): the inverse dynamics of the predicted h_{t+1} or, with ``idm_input="self_state"``, of the
+        self-state change predicted from o_t's tokens. With ``prompt_guidance`` w, that prediction x (the change,
+        else the logits) becomes x + w (x - x_null), x_null the one under the null prompt."""
+        cfg, m = self.config, self.model
+
+        def predicted(p: Tensor | None) -> Tensor:
+            if m.state_dynamics is not None:
+                return m.state_dynamics.predict_change(m.predictor(p, obs, h_past)[0][:, -1])
+            if cfg.cache_frame_tokens:
+                return m.action_head(m.predictor.forward_last_step(p, obs, h_past, m.obs_head)[:, None])[:, 0]
+            # the reference: two full passes, h_{t+1} predicted by the first and fed back into the second
             placeholder = torch.zeros_like(obs[:, :1, :, : cfg.joint_embedding_dim])
-            pred_h = m.predict(prompt, obs, torch.cat([h_past, placeholder], 1))[0]
-            logits = m.predict(prompt, obs, torch.cat([h_past, pred_h[:, -1:]], 1))[1][:, -1]
-        return self.bin_centres[logits.argmax(-1)]
+            pred_h = m.predict(p, obs, torch.cat([h_past, placeholder], 1))[0]
+            return m.predict(p, obs, torch.cat([h_past, pred_h[:, -1:]], 1))[1][:, -1]
+
+        x = predicted(prompt)
+        if cfg.prompt_guidance and prompt is not None:
+            x = x + cfg.prompt_guidance * (x - predicted(m.null_prompt(prompt)))
+        return x if m.state_dynamics is None else m.state_dynamics(state, x)

@@ -121,8 +121,7 @@ def load_checkpoint(cfg: ProbeConfig):
             f"{cfg.policy.path} is an inverse dynamics model: it takes no prompt and cannot act. Probe the policy "
             "trained on its labels (jept-relabel, then --policy.type=dt_star) instead."
         )
-    if cfg.policy.device:
-        policy_cfg.device = cfg.policy.device
+    cfg.policy.apply(policy_cfg)
     if cfg.prompt_repo_id:
         policy_cfg.prompt_repo_id, policy_cfg.prompt_root = cfg.prompt_repo_id, cfg.prompt_root
     policy = get_policy_class(policy_cfg.type).from_pretrained(cfg.policy.path, config=policy_cfg).eval()

@@ -71,8 +71,7 @@ def load_idm(cfg: RelabelConfig):
             f"{cfg.policy.path} is a {policy_cfg.type!r} checkpoint; jept-relabel needs an inverse dynamics model "
             "trained with `lerobot-train --policy.type=idm`."
         )
-    if cfg.policy.device:
-        policy_cfg.device = cfg.policy.device
+    cfg.policy.apply(policy_cfg)
     policy = IDMPolicy.from_pretrained(cfg.policy.path, config=policy_cfg).eval()
     pre, _ = make_pre_post_processors(policy_cfg, pretrained_path=cfg.policy.path)
     return policy, pre

@@ -54,6 +54,21 @@ PAPER_TABLE1 = PAPER_TABLE1_ALL["JEPT"]
 class PolicyArg:
     path: str = ""  # checkpoint folder (.../pretrained_model) or Hub repo id
     device: str | None = None
+    prompt_guidance: float | None = (
+        None  # jept: the classifier-free guidance weight (default: the checkpoint's)
+    )
+
+    def apply(self, policy_cfg) -> None:
+        """The overrides given on the command line, onto the checkpoint's config."""
+        if self.device:
+            policy_cfg.device = self.device
+        if self.prompt_guidance is not None:
+            if not hasattr(policy_cfg, "prompt_guidance"):
+                raise ValueError(
+                    f"--policy.prompt_guidance is a jept option; {self.path} is a {policy_cfg.type} checkpoint."
+                )
+            policy_cfg.prompt_guidance = self.prompt_guidance
+            policy_cfg.__post_init__()  # the checks: guidance needs a checkpoint trained with prompt dropout
 
 
 @dataclass
@@ -165,8 +180,7 @@ def evaluate_task(cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str,
 
     policy = PreTrainedConfig.from_pretrained(cfg.policy.path)
     policy.pretrained_path = Path(cfg.policy.path)
-    if cfg.policy.device:
-        policy.device = cfg.policy.device
+    cfg.policy.apply(policy)
     protocol = build["protocol"]
     common = dict(
         task=task,
@@ -250,7 +264,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
 
         probe = run_probe(
             ProbeConfig(
-                PolicyArg(cfg.policy.path, cfg.policy.device),
+                cfg.policy,
                 DatasetArg(probe_repo_id, cfg.probe_root),
                 prompt_repo_id=prompt_repo_id,
                 prompt_root=cfg.prompt_root,

@@ -424,3 +424,69 @@ def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_chan
 def test_idm_input_must_be_known():
     with pytest.raises(ValueError, match="--policy.idm_input=embedding"):
         tiny_config(idm_input="state")
+
+
+@pytest.mark.parametrize("idm_input", ["embedding", "self_state"])
+def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(tiny_build, tmp_path, idm_input):
+    """prompt_dropout trains a null prompt (in the prompt learning-rate group, saved with the checkpoint);
+    prompt_guidance w turns the control prediction x (the action logits, or the self-state change) into
+    x + w (x - x_null), the same in offline_outputs and select_action, and 0 leaves it as it was."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    policy, pre, _ = build_policy(tiny_build, idm_input=idm_input, prompt_dropout=0.5)
+    m = policy.model
+    assert m.null_prompt is not None
+    assert any(p is m.null_prompt.tokens for p in policy.get_optim_params()[1]["params"])
+    policy.train()
+    torch.manual_seed(1)
+    policy.forward(pre(mixed_batch(policy.config)))[0].backward()
+    assert m.null_prompt.tokens.grad.abs().sum() > 0
+
+    policy.eval()
+    k = policy.config.n_obs_steps
+    ds = load(MIX, delta_timestamps=resolve_delta_timestamps(policy.config, LeRobotDatasetMetadata(MIX)))
+    window = pre(torch.utils.data.default_collate([ds[i] for i in (k - 1, k + 5)]))
+    plain = policy.offline_outputs(window)["control"]
+
+    prompt = m.encode_prompt(window[PROMPT_VIDEO], window.get("observation.prompt_video_mask"))
+    tokens, obs, h_in = policy._encode_window(window)
+    if idm_input == "self_state":
+        change, null_change = (
+            m.predict(p, obs[:, :k], h_in)[2][:, -1] for p in (prompt, m.null_prompt(prompt))
+        )
+        expected = m.state_dynamics(
+            window["observation.state"][:, k - 1], change + 2 * (change - null_change)
+        )
+    else:
+        policy.config.prompt_guidance = 0.0
+        null = policy._control_logits(m.null_prompt(prompt), obs[:, :k], h_in[:, : k - 1], None)
+        expected = plain + 2 * (plain - null)
+    policy.config.prompt_guidance = 2.0
+    guided = policy.offline_outputs(window)["control"]
+    torch.testing.assert_close(guided, expected)
+    assert not torch.allclose(guided, plain)
+
+    policy.reset()
+    for i in range(k):
+        obs_i = {key: window[key][:1, i] for key in ("observation.image", "observation.state")}
+        action = policy.select_action({**obs_i, PROMPT_VIDEO: window[PROMPT_VIDEO][:1]})
+    torch.testing.assert_close(action, policy.bin_centres[guided[:1].argmax(-1)])
+
+    policy.save_pretrained(tmp_path)
+    reloaded = JEPTPolicy.from_pretrained(tmp_path).eval()
+    torch.testing.assert_close(reloaded.offline_outputs(window)["control"], guided)
+
+
+def test_prompt_guidance_needs_a_null_prompt(tiny_build):
+    from lerobot_jept.suite import PolicyArg
+
+    assert build_policy(tiny_build)[0].model.null_prompt is None  # the paper's checkpoints: no new weights
+    with pytest.raises(ValueError, match="--policy.prompt_dropout=P"):
+        tiny_config(prompt_guidance=2.0)
+    with pytest.raises(ValueError, match="prompt_dropout is a probability"):
+        tiny_config(prompt_dropout=1.0)
+    with pytest.raises(ValueError, match="--policy.prompt_dropout=P"):
+        PolicyArg("ckpt", prompt_guidance=2.0).apply(tiny_config())
+    cfg = tiny_config(prompt_dropout=0.2)
+    PolicyArg("ckpt", prompt_guidance=2.0).apply(cfg)
+    assert cfg.prompt_guidance == 2.0
