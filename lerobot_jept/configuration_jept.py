@@ -121,8 +121,9 @@ class JEPTConfig(PreTrainedConfig):
             ``prompt_dropout``, so the predictor also learns what to do without a prompt. In control, the
             prediction x under the prompt (the self-state change with ``idm_input="self_state"``, else the
             action logits) becomes x + ``prompt_guidance`` * (x - x_null), x_null the prediction under the
-            null prompt: what the prompt adds is amplified. 0 and 0 is the paper; guidance needs a checkpoint
-            trained with ``prompt_dropout`` > 0 and can be set at evaluation (``--policy.prompt_guidance``).
+            null prompt: what the prompt adds is amplified. Trained without dropout, x_null is the prediction
+            without E_prt, as in the prompt warm-up (``prompt_warmup_steps``, the only time it was trained).
+            0 and 0 is the paper; guidance can be set at evaluation (``--policy.prompt_guidance``).
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
@@ -256,10 +257,11 @@ class JEPTConfig(PreTrainedConfig):
             raise ValueError(f"prompt_dropout is a probability in [0, 1), got {self.prompt_dropout}.")
         if self.prompt_guidance < 0:
             raise ValueError(f"prompt_guidance must be >= 0 (0: no guidance), got {self.prompt_guidance}.")
-        if self.prompt_guidance and not self.prompt_dropout:
+        if self.prompt_guidance and not (self.prompt_dropout or self.prompt_warmup_steps):
             raise ValueError(
-                f"prompt_guidance={self.prompt_guidance} needs the null prompt that training with prompt dropout "
-                "learns: train with --policy.prompt_dropout=P (e.g. 0.2), or pass --policy.prompt_guidance=0."
+                f"prompt_guidance={self.prompt_guidance} needs a prediction without the prompt, which this "
+                "training never made (no prompt warm-up, no prompt dropout): train with --policy.prompt_dropout=P "
+                "(e.g. 0.2), or pass --policy.prompt_guidance=0."
             )
         if self.n_obs_steps < 1:
             raise ValueError(f"n_obs_steps (the context length k) must be >= 1, got {self.n_obs_steps}.")

@@ -346,7 +346,8 @@ class JEPTPolicy(DiscreteActionPolicy):
         """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and s_t
         (B, S): the inverse dynamics of the predicted h_{t+1} or, with ``idm_input="self_state"``, of the
         self-state change predicted from o_t's tokens. With ``prompt_guidance`` w, that prediction x (the change,
-        else the logits) becomes x + w (x - x_null), x_null the one under the null prompt."""
+        else the logits) becomes x + w (x - x_null), x_null the one under the learned null prompt
+        (``prompt_dropout``) or, without one, with no prompt (the prompt warm-up's prediction)."""
         cfg, m = self.config, self.model
 
         def predicted(p: Tensor | None) -> Tensor:
@@ -361,5 +362,6 @@ class JEPTPolicy(DiscreteActionPolicy):
 
         x = predicted(prompt)
         if cfg.prompt_guidance and prompt is not None:
-            x = x + cfg.prompt_guidance * (x - predicted(m.null_prompt(prompt)))
+            null = None if m.null_prompt is None else m.null_prompt(prompt)
+            x = x + cfg.prompt_guidance * (x - predicted(null))
         return x if m.state_dynamics is None else m.state_dynamics(state, x)

@@ -426,21 +426,29 @@ def test_idm_input_must_be_known():
         tiny_config(idm_input="state")
 
 
-@pytest.mark.parametrize("idm_input", ["embedding", "self_state"])
-def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(tiny_build, tmp_path, idm_input):
+@pytest.mark.parametrize("idm_input, dropout", [("embedding", 0.5), ("self_state", 0.5), ("self_state", 0.0)])
+def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(
+    tiny_build, tmp_path, idm_input, dropout
+):
     """prompt_dropout trains a null prompt (in the prompt learning-rate group, saved with the checkpoint);
     prompt_guidance w turns the control prediction x (the action logits, or the self-state change) into
-    x + w (x - x_null), the same in offline_outputs and select_action, and 0 leaves it as it was."""
+    x + w (x - x_null), the same in offline_outputs and select_action, and 0 leaves it as it was. Without
+    dropout x_null is the prediction without a prompt (the prompt warm-up's)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-    policy, pre, _ = build_policy(tiny_build, idm_input=idm_input, prompt_dropout=0.5)
+    policy, pre, _ = build_policy(
+        tiny_build, idm_input=idm_input, prompt_dropout=dropout, prompt_warmup_steps=1
+    )
     m = policy.model
-    assert m.null_prompt is not None
-    assert any(p is m.null_prompt.tokens for p in policy.get_optim_params()[1]["params"])
     policy.train()
+    policy.update()  # past the warm-up
     torch.manual_seed(1)
     policy.forward(pre(mixed_batch(policy.config)))[0].backward()
-    assert m.null_prompt.tokens.grad.abs().sum() > 0
+    if dropout:
+        assert any(p is m.null_prompt.tokens for p in policy.get_optim_params()[1]["params"])
+        assert m.null_prompt.tokens.grad.abs().sum() > 0
+    else:
+        assert m.null_prompt is None
 
     policy.eval()
     k = policy.config.n_obs_steps
@@ -449,17 +457,15 @@ def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(tiny_bui
     plain = policy.offline_outputs(window)["control"]
 
     prompt = m.encode_prompt(window[PROMPT_VIDEO], window.get("observation.prompt_video_mask"))
+    null_prompt = m.null_prompt(prompt) if dropout else None
     tokens, obs, h_in = policy._encode_window(window)
     if idm_input == "self_state":
-        change, null_change = (
-            m.predict(p, obs[:, :k], h_in)[2][:, -1] for p in (prompt, m.null_prompt(prompt))
-        )
+        change, null_change = (m.predict(p, obs[:, :k], h_in)[2][:, -1] for p in (prompt, null_prompt))
         expected = m.state_dynamics(
             window["observation.state"][:, k - 1], change + 2 * (change - null_change)
         )
     else:
-        policy.config.prompt_guidance = 0.0
-        null = policy._control_logits(m.null_prompt(prompt), obs[:, :k], h_in[:, : k - 1], None)
+        null = policy._control_logits(null_prompt, obs[:, :k], h_in[:, : k - 1], None)
         expected = plain + 2 * (plain - null)
     policy.config.prompt_guidance = 2.0
     guided = policy.offline_outputs(window)["control"]
