@@ -54,9 +54,8 @@ PAPER_TABLE1 = PAPER_TABLE1_ALL["JEPT"]
 class PolicyArg:
     path: str = ""  # checkpoint folder (.../pretrained_model) or Hub repo id
     device: str | None = None
-    prompt_guidance: float | None = (
-        None  # jept: the classifier-free guidance weight (default: the checkpoint's)
-    )
+    # jept: the classifier-free guidance weight (default: the checkpoint's)
+    prompt_guidance: float | None = None
 
     def apply(self, policy_cfg) -> None:
         """The overrides given on the command line, onto the checkpoint's config."""
@@ -68,7 +67,7 @@ class PolicyArg:
                     f"--policy.prompt_guidance is a jept option; {self.path} is a {policy_cfg.type} checkpoint."
                 )
             policy_cfg.prompt_guidance = self.prompt_guidance
-            policy_cfg.__post_init__()  # the checks: guidance needs a checkpoint trained with prompt dropout
+            policy_cfg.__post_init__()  # the config's checks: guidance needs a prompt warm-up or prompt dropout
 
 
 @dataclass

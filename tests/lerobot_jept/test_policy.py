@@ -458,7 +458,7 @@ def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(
 
     prompt = m.encode_prompt(window[PROMPT_VIDEO], window.get("observation.prompt_video_mask"))
     null_prompt = m.null_prompt(prompt) if dropout else None
-    tokens, obs, h_in = policy._encode_window(window)
+    _, obs, h_in = policy._encode_window(window)
     if idm_input == "self_state":
         change, null_change = (m.predict(p, obs[:, :k], h_in)[2][:, -1] for p in (prompt, null_prompt))
         expected = m.state_dynamics(
