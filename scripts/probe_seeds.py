@@ -3,7 +3,9 @@
     python -m scripts.probe_seeds --arms='{videos: [RUN1/probe, RUN2/probe, RUN3/probe], demos: [...]}' \\
         --task=window-close-v3
 
-Each folder (or ``prompt_probe.json`` path) is one training seed's probe on the same held-out repo. For ``--task``
+Each folder (or ``prompt_probe.json`` path) is one training seed's probe on the same held-out repo: a
+``jept-prompt-probe`` output, or a ``jept-eval-suite`` output (its ``results.json`` carries the probe; a
+``jept-study`` run's ``suite`` folder). For ``--task``
 and for its split (T_demo / T_vid / T_unseen) this prints, per arm, the mean, the 95% Student's t interval over
 seeds and the per-seed values of the probe's measures, then the bar the issue sets: is the first arm's mean
 ``control`` whole-action accuracy on the task above the second arm's by more than the spread over seeds (the
@@ -38,7 +40,7 @@ SPLIT_MEASURES = (
 
 @dataclass
 class ProbeSeedsConfig:
-    # arm name -> jept-prompt-probe output folders (or prompt_probe.json files), one per training seed
+    # arm name -> jept-prompt-probe / jept-eval-suite output folders (or their JSON files), one per training seed
     arms: dict[str, list[str]] = field(default_factory=dict)
     task: str = "window-close-v3"  # the task whose actions the bar is about (a task of the probe repo)
 
@@ -46,12 +48,20 @@ class ProbeSeedsConfig:
 def load_probe(path: str) -> dict:
     file = Path(path)
     if file.is_dir():
-        file = file / "prompt_probe.json"
+        file = next((file / n for n in ("prompt_probe.json", "results.json") if (file / n).is_file()), file)
     if not file.is_file():
         raise SystemExit(
-            f"{file} not found: pass jept-prompt-probe's --output_dir (or its prompt_probe.json)."
+            f"{file}: no prompt_probe.json or results.json: pass jept-prompt-probe's or jept-eval-suite's "
+            "--output_dir."
         )
-    return json.loads(file.read_text())
+    probe = json.loads(file.read_text())
+    if "actions" not in probe:  # a jept-eval-suite results.json: the probe is one of its entries
+        if "actions" not in (probe.get("prompt_probe") or {}):
+            raise SystemExit(
+                f"{file} has no probe: run jept-eval-suite with --heldout_repo_id=ORG/NAME_probe."
+            )
+        probe = probe["prompt_probe"]
+    return probe
 
 
 def task_value(probe: dict, task: str, measure: str) -> float:

@@ -31,6 +31,16 @@ def test_reads_a_real_probe_output(checkpoint, tmp_path):  # noqa: F811
     with pytest.raises(SystemExit, match="not in the probed repo"):
         compare_arms({"a": [probe]}, "window-close-v3")
 
+    suite = tmp_path / "suite"  # a jept-eval-suite (jept-study) output carries the probe in results.json
+    suite.mkdir()
+    (suite / "results.json").write_text(json.dumps({"per_task": {}, "prompt_probe": probe}))
+    assert load_probe(str(suite)) == probe
+    (suite / "results.json").write_text(json.dumps({"per_task": {}}))
+    with pytest.raises(SystemExit, match="has no probe: run jept-eval-suite with --heldout_repo_id"):
+        load_probe(str(suite))
+    with pytest.raises(SystemExit, match="no prompt_probe.json or results.json"):
+        load_probe(str(tmp_path / "nowhere"))
+
 
 def probe_output(control: float, swaps: dict[str, float]) -> dict:
     return {

@@ -323,7 +323,15 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
 
 @pytest.mark.parametrize(
     "name",
-    ["cpu_small", "cpu_small_videos", "paper_metaworld", "paper_table2", "paper_robosuite", "paper_table4"],
+    [
+        "cpu_small",
+        "cpu_small_videos",
+        "cpu_small_prompt",
+        "paper_metaworld",
+        "paper_table2",
+        "paper_robosuite",
+        "paper_table4",
+    ],
 )
 def test_shipped_study_files_parse_and_plan(name, monkeypatch):
     import draccus
@@ -351,6 +359,22 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         assert [(m.config, m.data) for m in cfg.methods] == [
             (small.methods[0].config, d) for d in ("mix", "demo")
         ]
+    if (
+        name == "cpu_small_prompt"
+    ):  # issue 13's configuration: the same scene pairs, with and without the videos
+        small = draccus.parse(StudyConfig, config_path="examples/studies/cpu_small.json", args=[])
+        split = cfg.splits[0]
+        assert (split.demo_tasks, split.video_tasks, split.unseen_tasks) == (
+            small.splits[0].demo_tasks,
+            small.splits[0].video_tasks,
+            small.splits[0].unseen_tasks,
+        )
+        assert cfg.build.args == ["--expert_random_prob=0.15"] and split.repo_id != small.splits[0].repo_id
+        assert [(m.data, m.args) for m in cfg.methods] == [
+            (d, ["--policy.idm_input=self_state", "--policy.prompt_guidance=2"]) for d in ("mix", "demo")
+        ]
+        train = next(s for s in steps if s.key.endswith("/train")).command
+        assert "--policy.idm_input=self_state" in train and "--policy.prompt_guidance=2" in train
     if name == "paper_metaworld":
         split = cfg.splits[0]
         assert {"demo": split.demo_tasks, "video": split.video_tasks, "unseen": split.unseen_tasks} == {
