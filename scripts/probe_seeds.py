@@ -9,7 +9,8 @@ Each folder (or ``prompt_probe.json`` path) is one training seed's probe on the 
 and for its split (T_demo / T_vid / T_unseen) this prints, per arm, the mean, the 95% Student's t interval over
 seeds and the per-seed values of the probe's measures, then the bar the issue sets: is the first arm's mean
 ``control`` whole-action accuracy on the task above the second arm's by more than the spread over seeds (the
-larger of the two arms' ranges, max - min)? Used in docs/prompt_collapse.md, section 15.
+larger of the two arms' ranges, max - min)? Beside it, Welch's t-test of the same difference (its 95% interval
+and two-sided p), which does not grow stricter as seeds are added the way a range does. Used in docs/prompt_collapse.md, section 15.
 """
 
 import json
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import draccus
 import numpy as np
+from scipy import stats
 
 from lerobot_jept.study import probe_fmt, probe_interval
 
@@ -107,6 +109,10 @@ def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
         seeds = [len(x), len(y)]  # one seed has no spread to beat
         met = min(seeds) >= 2 and margin > spread
         out["bar"] = {"arms": [first, second], "seeds": seeds, "margin": margin, "spread": spread, "met": met}
+        if min(seeds) >= 2 and np.var(x) + np.var(y) > 0:
+            welch = stats.ttest_ind(x, y, equal_var=False)
+            low, high = welch.confidence_interval(0.95)
+            out["bar"]["welch"] = {"low": float(low), "high": float(high), "p": float(welch.pvalue)}
     return out
 
 
@@ -142,6 +148,11 @@ def markdown(result: dict) -> str:
             f"seeds (larger range of the two arms, {' and '.join(map(str, bar['seeds']))} seeds) "
             f"{100 * bar['spread']:.1f} points: {verdict}."
         )
+        if welch := bar.get("welch"):
+            lines.append(
+                f"Welch's t-test of the difference: 95% interval [{100 * welch['low']:+.1f}, "
+                f"{100 * welch['high']:+.1f}] points, p = {welch['p']:.3f} (two-sided)."
+            )
     return "\n".join(lines) + "\n"
 
 

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.stats import t as t_dist
 
 from lerobot_jept.prompt_probe import ProbeConfig, run_probe
 from lerobot_jept.suite import DatasetArg, PolicyArg
@@ -26,7 +27,7 @@ def test_reads_a_real_probe_output(checkpoint, tmp_path):  # noqa: F811
     assert result["arms"]["b"]["split"]["loss_obs"] == [probe["splits"]["T_vid"]["loss_obs"]]
     trained = probe["prompt_separability"]["trained_tasks"]["nearest_centroid_accuracy"]
     assert result["arms"]["a"]["nc_trained"] == [trained] * 2
-    assert result["bar"]["margin"] == 0.0 and not result["bar"]["met"]
+    assert result["bar"]["margin"] == 0.0 and not result["bar"]["met"] and "welch" not in result["bar"]
     assert "needs at least two seeds per arm" in markdown(result)  # arm b has one seed: no spread to beat
     with pytest.raises(SystemExit, match="not in the probed repo"):
         compare_arms({"a": [probe]}, "window-close-v3")
@@ -59,6 +60,15 @@ def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
     assert result["bar"]["margin"] == pytest.approx(0.15) and result["bar"]["spread"] == pytest.approx(0.10)
     assert result["bar"]["met"]
     assert "the bar (a margin larger than the spread) is met" in markdown(result)
+    # Welch by hand: variances 0.0016 and 0.0025 over 3 seeds each, df from Welch-Satterthwaite
+    se2 = (0.0016 / 3, 0.0025 / 3)
+    df = sum(se2) ** 2 / (se2[0] ** 2 / 2 + se2[1] ** 2 / 2)
+    half = t_dist.ppf(0.975, df) * np.sqrt(sum(se2))
+    welch = result["bar"]["welch"]
+    assert df == pytest.approx(3.816, abs=1e-3)
+    assert (welch["low"], welch["high"]) == pytest.approx((0.15 - half, 0.15 + half))
+    assert welch["p"] == pytest.approx(2 * t_dist.sf(0.15 / np.sqrt(sum(se2)), df)) and welch["p"] < 0.05
+    assert f"95% interval [{100 * (0.15 - half):+.1f}, " in markdown(result)
     assert np.isnan(result["arms"]["videos"]["task"]["inverse_whole"]).all()  # a measure the probe lacks
 
     wide = copy.deepcopy(demos)
