@@ -27,7 +27,7 @@ import time
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
-from benchmarks.bench_policy import median_time, step_times
+from benchmarks.bench_policy import median_time, step_times, sync
 from lerobot_jept import JEPTConfig, JEPTPolicy
 from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.policy_base import CACHE_DTYPES
@@ -104,7 +104,9 @@ def fill_prompt_cache(policy: JEPTPolicy, batch: dict) -> None:
         )
 
 
-def prompt_cache_speedup(device: str, repeats: int) -> dict[str, float]:
+def prompt_cache_speedup(
+    device: str, repeats: int, batch_size: int = 2, prompt_frames: int = 64
+) -> dict[str, float]:
     """Step times without / with the cache in each of Algorithm 1's phases (the training alternates them).
 
     Each policy runs in blocks of consecutive steps, as training does (a step right after the other policy's
@@ -115,7 +117,7 @@ def prompt_cache_speedup(device: str, repeats: int) -> dict[str, float]:
     for cached in (False, True):
         policy = paper_policy(device, prompt_token_cache=cached).train()
         optimizer = torch.optim.AdamW(policy.get_optim_params())
-        runs[cached] = (policy, optimizer, paper_batch(policy.config, 2, 64, device))
+        runs[cached] = (policy, optimizer, paper_batch(policy.config, batch_size, prompt_frames, device))
     times = {}
     for phase in ("encoder", "others"):
         samples = {cached: [] for cached in runs}
@@ -130,14 +132,19 @@ def prompt_cache_speedup(device: str, repeats: int) -> dict[str, float]:
 
 
 def peak_child(device: str, batch_size: int, prompt_frames: int) -> None:
-    """One training step per phase; prints the peak after each (the parent keeps the last line it got)."""
+    """One training step per phase; prints the peak after each (the parent keeps the last line it got) and the
+    step's time (the first step of the process: it includes the kernels' first-use costs)."""
     policy = paper_policy(device, prompt_cache_dtype="bfloat16").train()
     batch = paper_batch(policy.config, batch_size, prompt_frames, device)
     fill_prompt_cache(policy, batch)
     optimizer = torch.optim.AdamW(policy.get_optim_params())
     for phase in ("encoder", "others"):
         set_phase(policy, phase)
+        sync()
+        start = time.perf_counter()
         train_step(policy, optimizer, batch)
+        sync()
+        print(f"step_s {phase} {time.perf_counter() - start:.2f}", flush=True)
         if device == "cuda":
             peak = torch.cuda.max_memory_allocated() / 2**30
         else:
@@ -154,6 +161,8 @@ def peak_memory(device: str, batch_size: int, prompt_frames: int, timeout: int) 
     except subprocess.TimeoutExpired as err:
         out = err.stdout.decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
         status = "timeout"
+    for phase, seconds in (line.split()[1:] for line in out.splitlines() if line.startswith("step_s ")):
+        print(f"paper_train_step_b{batch_size}_p{prompt_frames}_{phase}_s: {seconds}", flush=True)
     peaks = [line.split() for line in out.splitlines() if line.startswith("peak_gib ")]
     if not peaks:
         return None, status
@@ -178,8 +187,10 @@ def first_step_ratio(device: str, repeats: int) -> tuple[float, float, float]:
     firsts, laters = [], []
     for _ in range(repeats):
         policy.reset()
+        sync()
         start = time.perf_counter()
         policy.select_action(obs)
+        sync()
         firsts.append(time.perf_counter() - start)
         laters.append(median_time(lambda: policy.select_action(obs), 3, warmup=0))
     first, later = statistics.median(firsts), statistics.median(laters)
@@ -196,6 +207,11 @@ def main() -> None:
     parser.add_argument("--prompt_frames", type=int, default=250)
     parser.add_argument("--peak_timeout", type=int, default=1800)
     parser.add_argument(
+        "--speedup_shape",
+        default="2,64",
+        help="batch size and prompt frames of the speedup's steps (the goal is set at 2,64; 32,250 is the paper's)",
+    )
+    parser.add_argument(
         "--figures",
         default="speedup,first_step,peak",
         help="which figures to measure, comma-separated (the peak alone takes about 13 minutes on 2 CPU cores)",
@@ -211,14 +227,18 @@ def main() -> None:
         return
 
     if "speedup" in figures:
-        times = prompt_cache_speedup(args.device, args.repeats)
+        batch_size, prompt_frames = (int(n) for n in args.speedup_shape.split(","))
+        times = prompt_cache_speedup(args.device, args.repeats, batch_size, prompt_frames)
+        shape = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
         for phase in ("encoder", "others"):
             uncached, cached = times[False, phase], times[True, phase]
-            print(f"paper_train_step_{phase}_uncached_s: {uncached:.2f}")
-            print(f"paper_train_step_{phase}_cached_s: {cached:.2f}")
-            print(f"paper_train_step_{phase}_prompt_cache_speedup: {uncached / cached:.2f}", flush=True)
+            print(f"paper_train_step{shape}_{phase}_uncached_s: {uncached:.3f}")
+            print(f"paper_train_step{shape}_{phase}_cached_s: {cached:.3f}")
+            print(
+                f"paper_train_step{shape}_{phase}_prompt_cache_speedup: {uncached / cached:.2f}", flush=True
+            )
         total = {cached: times[cached, "encoder"] + times[cached, "others"] for cached in (False, True)}
-        print(f"paper_train_step_prompt_cache_speedup: {total[False] / total[True]:.2f}", flush=True)
+        print(f"paper_train_step{shape}_prompt_cache_speedup: {total[False] / total[True]:.2f}", flush=True)
     if "first_step" in figures:
         ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
         print(f"select_action_first_step_s: {first:.3f}")

@@ -28,14 +28,22 @@ from lerobot_jept import DTStarConfig, IDMConfig, JEPTConfig, JEPTPolicy, Vid2Ro
 from lerobot_jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
 
 
+def sync() -> None:
+    """Wait for the GPU's queued work (CUDA runs asynchronously), so that a timer measures the work itself."""
+    if torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
 def step_times(fn, repeats: int, warmup: int = 2) -> list[float]:
     """Seconds of each of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones."""
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeats):
+        sync()
         start = time.perf_counter()
         fn()
+        sync()
         times.append(time.perf_counter() - start)
     return times
 
