@@ -131,10 +131,10 @@ def prompt_cache_speedup(
     return times
 
 
-def peak_child(device: str, batch_size: int, prompt_frames: int) -> None:
+def peak_child(device: str, batch_size: int, prompt_frames: int, vision_backbone: str) -> None:
     """One training step per phase; prints the peak after each (the parent keeps the last line it got) and the
     step's time (the first step of the process: it includes the kernels' first-use costs)."""
-    policy = paper_policy(device, prompt_cache_dtype="bfloat16").train()
+    policy = paper_policy(device, prompt_cache_dtype="bfloat16", vision_backbone=vision_backbone).train()
     batch = paper_batch(policy.config, batch_size, prompt_frames, device)
     fill_prompt_cache(policy, batch)
     optimizer = torch.optim.AdamW(policy.get_optim_params())
@@ -152,9 +152,21 @@ def peak_child(device: str, batch_size: int, prompt_frames: int) -> None:
         print(f"peak_gib {phase} {peak:.2f}", flush=True)
 
 
-def peak_memory(device: str, batch_size: int, prompt_frames: int, timeout: int) -> tuple[float | None, str]:
+def peak_tag(batch_size: int, prompt_frames: int, vision_backbone: str) -> str:
+    """``b32_p250``, with the prior's name when it is not the paper's ViT-B."""
+    tag = f"b{batch_size}_p{prompt_frames}"
+    return tag if vision_backbone == JEPTConfig.vision_backbone else f"{tag}_{vision_backbone.split('.')[0]}"
+
+
+def peak_memory(
+    device: str, batch_size: int, prompt_frames: int, vision_backbone: str, timeout: int
+) -> tuple[float | None, str]:
     cmd = [sys.executable, "-m", "benchmarks.bench_paper_scale", "--child", f"--device={device}"]
-    cmd += [f"--batch_size={batch_size}", f"--prompt_frames={prompt_frames}"]
+    cmd += [
+        f"--batch_size={batch_size}",
+        f"--prompt_frames={prompt_frames}",
+        f"--vision_backbone={vision_backbone}",
+    ]
     try:
         run = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
         out, status = run.stdout, f"exit {run.returncode}"
@@ -162,7 +174,8 @@ def peak_memory(device: str, batch_size: int, prompt_frames: int, timeout: int) 
         out = err.stdout.decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
         status = "timeout"
     for phase, seconds in (line.split()[1:] for line in out.splitlines() if line.startswith("step_s ")):
-        print(f"paper_train_step_b{batch_size}_p{prompt_frames}_{phase}_s: {seconds}", flush=True)
+        tag = peak_tag(batch_size, prompt_frames, vision_backbone)
+        print(f"paper_train_step_{tag}_{phase}_s: {seconds}", flush=True)
     peaks = [line.split() for line in out.splitlines() if line.startswith("peak_gib ")]
     if not peaks:
         return None, status
@@ -207,6 +220,11 @@ def main() -> None:
     parser.add_argument("--prompt_frames", type=int, default=250)
     parser.add_argument("--peak_timeout", type=int, default=1800)
     parser.add_argument(
+        "--vision_backbone",
+        default=JEPTConfig.vision_backbone,
+        help="the peak's backbone: a visual prior (random weights) in place of the paper's ViT-B",
+    )
+    parser.add_argument(
         "--speedup_shape",
         default="2,64",
         help="batch size and prompt frames of the speedup's steps (the goal is set at 2,64; 32,250 is the paper's)",
@@ -223,7 +241,7 @@ def main() -> None:
         parser.error(f"--figures takes speedup, first_step and/or peak, got {args.figures!r}")
     torch.set_num_threads(os.cpu_count() or 1)
     if args.child:
-        peak_child(args.device, args.batch_size, args.prompt_frames)
+        peak_child(args.device, args.batch_size, args.prompt_frames, args.vision_backbone)
         return
 
     if "speedup" in figures:
@@ -246,8 +264,10 @@ def main() -> None:
         print(f"select_action_first_step_vs_later: {ratio:.2f}", flush=True)
     if "peak" not in figures:
         return
-    peak, status = peak_memory(args.device, args.batch_size, args.prompt_frames, args.peak_timeout)
-    name = f"paper_train_peak_gib_b{args.batch_size}_p{args.prompt_frames}"
+    peak, status = peak_memory(
+        args.device, args.batch_size, args.prompt_frames, args.vision_backbone, args.peak_timeout
+    )
+    name = f"paper_train_peak_gib_{peak_tag(args.batch_size, args.prompt_frames, args.vision_backbone)}"
     print(f"{name}: {'failed' if peak is None else f'{peak:.2f}'} ({args.device}, {status})")
 
 
