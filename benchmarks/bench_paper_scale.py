@@ -14,6 +14,10 @@ on synthetic batches shaped like the preprocessor's output (bank prompts carry t
   so the bench survives a failure and prints the figure reached. Goal <= 24 (the paper's RTX 3090).
 - ``select_action_first_step_vs_later``: the first control step of an episode whose 250-frame bank prompt was
   seen before / a later step of the same episode. Goal <= 2.
+
+``--speedup_shape=32,250`` measures the speedup at the paper's batch and prompt length (a GPU's figure);
+``--vision_backbone=NAME`` measures the peak with a visual prior in place of the ViT-B. On CUDA every timer waits
+for the GPU's queued work.
 """
 
 import argparse
@@ -173,8 +177,8 @@ def peak_memory(
     except subprocess.TimeoutExpired as err:
         out = err.stdout.decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
         status = "timeout"
+    tag = peak_tag(batch_size, prompt_frames, vision_backbone)
     for phase, seconds in (line.split()[1:] for line in out.splitlines() if line.startswith("step_s ")):
-        tag = peak_tag(batch_size, prompt_frames, vision_backbone)
         print(f"paper_train_step_{tag}_{phase}_s: {seconds}", flush=True)
     peaks = [line.split() for line in out.splitlines() if line.startswith("peak_gib ")]
     if not peaks:
@@ -239,13 +243,16 @@ def main() -> None:
     figures = set(args.figures.split(","))
     if figures - {"speedup", "first_step", "peak"}:
         parser.error(f"--figures takes speedup, first_step and/or peak, got {args.figures!r}")
+    shape = args.speedup_shape.split(",")
+    if len(shape) != 2 or not all(n.strip().isdigit() and int(n) > 0 for n in shape):
+        parser.error(f"--speedup_shape takes BATCH,FRAMES (e.g. 32,250), got {args.speedup_shape!r}")
     torch.set_num_threads(os.cpu_count() or 1)
     if args.child:
         peak_child(args.device, args.batch_size, args.prompt_frames, args.vision_backbone)
         return
 
     if "speedup" in figures:
-        batch_size, prompt_frames = (int(n) for n in args.speedup_shape.split(","))
+        batch_size, prompt_frames = (int(n) for n in shape)
         times = prompt_cache_speedup(args.device, args.repeats, batch_size, prompt_frames)
         shape = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
         for phase in ("encoder", "others"):
