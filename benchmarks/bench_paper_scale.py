@@ -243,8 +243,8 @@ def main() -> None:
     figures = set(args.figures.split(","))
     if figures - {"speedup", "first_step", "peak"}:
         parser.error(f"--figures takes speedup, first_step and/or peak, got {args.figures!r}")
-    shape = args.speedup_shape.split(",")
-    if len(shape) != 2 or not all(n.strip().isdigit() and int(n) > 0 for n in shape):
+    speedup_shape = args.speedup_shape.split(",")
+    if len(speedup_shape) != 2 or not all(n.strip().isdigit() and int(n) > 0 for n in speedup_shape):
         parser.error(f"--speedup_shape takes BATCH,FRAMES (e.g. 32,250), got {args.speedup_shape!r}")
     torch.set_num_threads(os.cpu_count() or 1)
     if args.child:
@@ -252,18 +252,18 @@ def main() -> None:
         return
 
     if "speedup" in figures:
-        batch_size, prompt_frames = (int(n) for n in shape)
+        batch_size, prompt_frames = (int(n) for n in speedup_shape)
         times = prompt_cache_speedup(args.device, args.repeats, batch_size, prompt_frames)
-        shape = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
+        suffix = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
         for phase in ("encoder", "others"):
             uncached, cached = times[False, phase], times[True, phase]
-            print(f"paper_train_step{shape}_{phase}_uncached_s: {uncached:.3f}")
-            print(f"paper_train_step{shape}_{phase}_cached_s: {cached:.3f}")
+            print(f"paper_train_step{suffix}_{phase}_uncached_s: {uncached:.3f}")
+            print(f"paper_train_step{suffix}_{phase}_cached_s: {cached:.3f}")
             print(
-                f"paper_train_step{shape}_{phase}_prompt_cache_speedup: {uncached / cached:.2f}", flush=True
+                f"paper_train_step{suffix}_{phase}_prompt_cache_speedup: {uncached / cached:.2f}", flush=True
             )
         total = {cached: times[cached, "encoder"] + times[cached, "others"] for cached in (False, True)}
-        print(f"paper_train_step{shape}_prompt_cache_speedup: {total[False] / total[True]:.2f}", flush=True)
+        print(f"paper_train_step{suffix}_prompt_cache_speedup: {total[False] / total[True]:.2f}", flush=True)
     if "first_step" in figures:
         ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
         print(f"select_action_first_step_s: {first:.3f}")

@@ -6,11 +6,11 @@
 Each folder (or JSON file) is one training seed's probe on the same held-out repo: a ``jept-prompt-probe``
 output, or a ``jept-eval-suite`` output (its ``results.json`` carries the probe; a ``jept-study`` run's ``suite``
 folder). For ``--task`` and for its split (T_demo / T_vid / T_unseen) this prints, per arm, the mean, the 95%
-Student's t interval over seeds and the per-seed values of the probe's measures, then the bar the issue sets: is the first arm's mean
-``control`` whole-action accuracy on the task above the second arm's by more than the spread over seeds (the
-larger of the two arms' ranges, max - min)? Beside it, Welch's t-test of the same difference (its 95% interval
-and two-sided p), which does not grow stricter as seeds are added the way a range does. Used in
-docs/prompt_collapse.md, sections 15-19.
+Student's t interval over seeds and the per-seed values of the probe's measures, then the bar the issue sets:
+is the first arm's mean ``control`` whole-action accuracy on the task above the second arm's by more than the
+spread over seeds (the larger of the two arms' ranges, max - min)? Beside it, Welch's t-test of the same
+difference (its 95% interval and two-sided p), which does not grow stricter as seeds are added the way a range
+does. Used in docs/prompt_collapse.md, sections 15-20.
 """
 
 import json
