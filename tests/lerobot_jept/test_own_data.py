@@ -183,6 +183,28 @@ def test_jept_mix_names_every_difference_and_the_fix(tiny_build):
         )
 
 
+def test_jept_mix_weights_a_repo_listed_twice(tiny_build):
+    """A repo listed twice enters the mix twice: the way to keep the labelled share of each batch when videos
+    outnumber the demos (LeRobot's training samples frames uniformly)."""
+    demo, video = load("test/mw_tiny_demo"), load("test/mw_tiny_video")
+    run_mix(
+        MixConfig(
+            demo_repo_ids=["test/mw_tiny_demo", "test/mw_tiny_demo"],
+            video_repo_ids=["test/mw_tiny_video"],
+            output_repo_id="test/twice_mix",
+        )
+    )
+    mix = load("test/twice_mix")
+    assert mix.meta.total_episodes == 2 * demo.meta.total_episodes + video.meta.total_episodes
+    labelled = np.asarray(mix.hf_dataset.with_format("numpy")[MARKER]).reshape(-1) == 1
+    assert labelled.sum() == 2 * demo.meta.total_frames
+    copy = mix.meta.episodes[demo.meta.total_episodes]["dataset_from_index"]
+    first, again = mix[0], mix[copy]
+    assert torch.equal(first["observation.state"], again["observation.state"])
+    assert torch.equal(first["action"], again["action"])
+    assert_whole("test/twice_mix")
+
+
 def write_mp4(path, size: tuple[int, int], frames: int, vfr: bool = False) -> None:
     import fractions
 
