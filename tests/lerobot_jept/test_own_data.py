@@ -67,6 +67,11 @@ def foreign_video(tiny_build):
     return "test/foreign_video"
 
 
+def labelled_frames(ds) -> np.ndarray:
+    """(frames,) bool: the frames a mix marks as labelled."""
+    return np.asarray(ds.hf_dataset.with_format("numpy")[MARKER]).reshape(-1) == 1
+
+
 def labels_by_episode(ds) -> dict[int, np.ndarray]:
     table = ds.hf_dataset.with_format("numpy")
     marker = np.asarray(table[MARKER]).reshape(-1) if MARKER in ds.meta.features else None
@@ -196,7 +201,7 @@ def test_jept_mix_weights_a_repo_listed_twice(tiny_build):
     )
     mix = load("test/twice_mix")
     assert mix.meta.total_episodes == 2 * demo.meta.total_episodes + video.meta.total_episodes
-    labelled = np.asarray(mix.hf_dataset.with_format("numpy")[MARKER]).reshape(-1) == 1
+    labelled = labelled_frames(mix)
     assert labelled.sum() == 2 * demo.meta.total_frames
     copy = mix.meta.episodes[demo.meta.total_episodes]["dataset_from_index"]
     first, again = mix[0], mix[copy]
@@ -297,7 +302,7 @@ def test_own_data_the_whole_way(foreign_video, tmp_path):
     assert build["sources"]["video"] == [{"repo_id": foreign_video, "robot_type": "phone"}]
     assert_whole("test/own_mix")
     demo = load("test/mw_tiny_demo")
-    labelled = np.asarray(mix.hf_dataset.with_format("numpy")[MARKER]).reshape(-1) == 1
+    labelled = labelled_frames(mix)
     assert labelled.sum() == demo.meta.total_frames
     actions = np.stack(mix.hf_dataset.with_format("numpy")["action"])
     np.testing.assert_allclose(mix.meta.stats["action"]["mean"], actions[labelled].mean(0), atol=1e-5)
