@@ -6,7 +6,7 @@ SHELL := /bin/bash
 
 PYTHON_VERSION ?= 3.12
 UV_VERSION ?= 0.13.9
-APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 ffmpeg
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 ffmpeg g++
 UV := $(shell command -v uv 2>/dev/null || echo $(HOME)/.local/bin/uv)
 VENV := .venv
 RUN := MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/python
@@ -61,6 +61,7 @@ bench: setup
 	@$(RUN) -m benchmarks.bench_builder
 	@$(RUN) -m benchmarks.bench_policy
 	@$(RUN) -m benchmarks.bench_paper_scale
+	@$(RUN) -m benchmarks.bench_paper_scale --figures=speedup --compile_model
 
 clean:
 	rm -rf $(VENV) outputs

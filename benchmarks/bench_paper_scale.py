@@ -7,7 +7,9 @@ on synthetic batches shaped like the preprocessor's output (bank prompts carry t
   cached prompt tokens (``prompt_token_cache``), batch 2, 64-frame prompts, the cache warm (as after each bank
   prompt's first use): one step in each of Algorithm 1's phases, which training alternates (each phase's own
   ratio is printed too); blocks of ``--repeats`` timed steps in the order uncached, cached, cached, uncached,
-  medians. Goal >= 5.
+  medians. Goal >= 5. ``paper_train_step_prompt_cache_flop_ratio`` is its arithmetic ceiling, counted in the
+  same run (torch's FLOP counter over one untimed step of each kind: matrix products and attention): the speedup
+  a device would reach if it ran every step's arithmetic at one rate.
 - ``paper_train_peak_gib_b32_p250``: peak memory of one training step at batch 32 with 250-frame prompts in
   each of Algorithm 1's two phases (the encoder, then the others), cache warm in bfloat16, measured in a child
   process (CUDA: ``max_memory_allocated``; CPU: the process's peak resident memory, model and batch included)
@@ -30,6 +32,7 @@ import time
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
+from torch.utils.flop_counter import FlopCounterMode
 
 from benchmarks.bench_policy import median_time, step_times, sync
 from lerobot_jept import JEPTConfig, JEPTPolicy
@@ -108,31 +111,46 @@ def fill_prompt_cache(policy: JEPTPolicy, batch: dict) -> None:
         )
 
 
+def gflop(fn) -> float:
+    """GFLOP of one call of ``fn``, as torch's FLOP counter sees them (matrix products, attention)."""
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return counter.get_total_flops() / 1e9
+
+
 def prompt_cache_speedup(
-    device: str, repeats: int, batch_size: int = 2, prompt_frames: int = 64
-) -> dict[str, float]:
-    """Step times without / with the cache in each of Algorithm 1's phases (the training alternates them).
+    device: str, repeats: int, batch_size: int = 2, prompt_frames: int = 64, compile_model: bool = False
+) -> tuple[dict, dict]:
+    """Step times and GFLOP without / with the cache in each of Algorithm 1's phases (the training alternates
+    them).
 
     Each policy runs in blocks of consecutive steps, as training does (a step right after the other policy's
     step pays for the memory and caches that step left cold), and the blocks come in the order uncached,
     cached, cached, uncached, so that a drift of the machine's speed weighs on both sides alike; the first step
-    of each block is not timed, the median of the others is."""
+    of each block is not timed, the median of the others is. The FLOPs are counted in the untimed first step of
+    the first uncached block and of the second cached one (its cache warm)."""
     runs = {}
     for cached in (False, True):
-        policy = paper_policy(device, prompt_token_cache=cached).train()
+        policy = paper_policy(device, prompt_token_cache=cached, compile_model=compile_model).train()
         optimizer = torch.optim.AdamW(policy.get_optim_params())
         runs[cached] = (policy, optimizer, paper_batch(policy.config, batch_size, prompt_frames, device))
-    times = {}
+    times, flops = {}, {}
     for phase in ("encoder", "others"):
         samples = {cached: [] for cached in runs}
-        for cached in (False, True, True, False):
+        for block, cached in enumerate((False, True, True, False)):
             policy, optimizer, batch = runs[cached]
             set_phase(policy, phase)
             step = lambda p=policy, o=optimizer, b=batch: train_step(p, o, b)  # noqa: E731
-            samples[cached] += step_times(step, repeats, warmup=1)  # the warm-up fills the cache when on
+            if block in (0, 2) and not compile_model:  # compiled kernels run past the FLOP counter
+                flops[cached, phase] = gflop(step)
+            else:
+                step()  # the first cached block's fills the cache
+            if compile_model and block < 2:
+                step()  # the first block of each policy and phase compiles in its first steps
+            samples[cached] += step_times(step, repeats, warmup=0)
         for cached, values in samples.items():
             times[cached, phase] = statistics.median(values)
-    return times
+    return times, flops
 
 
 def peak_child(device: str, batch_size: int, prompt_frames: int, vision_backbone: str) -> None:
@@ -238,6 +256,11 @@ def main() -> None:
         default="speedup,first_step,peak",
         help="which figures to measure, comma-separated (the peak alone takes about 13 minutes on 2 CPU cores)",
     )
+    parser.add_argument(
+        "--compile_model",
+        action="store_true",
+        help="the speedup with the policies' blocks compiled (--policy.compile_model), names ending _compiled",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     figures = set(args.figures.split(","))
@@ -253,17 +276,26 @@ def main() -> None:
 
     if "speedup" in figures:
         batch_size, prompt_frames = (int(n) for n in speedup_shape)
-        times = prompt_cache_speedup(args.device, args.repeats, batch_size, prompt_frames)
+        times, flops = prompt_cache_speedup(
+            args.device, args.repeats, batch_size, prompt_frames, args.compile_model
+        )
         suffix = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
+        suffix += "_compiled" if args.compile_model else ""
         for phase in ("encoder", "others"):
             uncached, cached = times[False, phase], times[True, phase]
             print(f"paper_train_step{suffix}_{phase}_uncached_s: {uncached:.3f}")
             print(f"paper_train_step{suffix}_{phase}_cached_s: {cached:.3f}")
+            if flops:
+                gflops = f"{flops[False, phase]:.0f} {flops[True, phase]:.0f}"
+                print(f"paper_train_step{suffix}_{phase}_gflop_uncached_cached: {gflops}")
             print(
                 f"paper_train_step{suffix}_{phase}_prompt_cache_speedup: {uncached / cached:.2f}", flush=True
             )
-        total = {cached: times[cached, "encoder"] + times[cached, "others"] for cached in (False, True)}
-        print(f"paper_train_step{suffix}_prompt_cache_speedup: {total[False] / total[True]:.2f}", flush=True)
+        for name, values in (("speedup", times), ("flop_ratio", flops))[: 2 if flops else 1]:
+            total = {cached: values[cached, "encoder"] + values[cached, "others"] for cached in (False, True)}
+            print(
+                f"paper_train_step{suffix}_prompt_cache_{name}: {total[False] / total[True]:.2f}", flush=True
+            )
     if "first_step" in figures:
         ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
         print(f"select_action_first_step_s: {first:.3f}")

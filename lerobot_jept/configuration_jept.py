@@ -21,6 +21,7 @@ from lerobot_jept.envs.spec import ACTION_LABELLED
 
 PHASE_SCHEDULES = ("alternate", "joint")
 IDM_INPUTS = ("embedding", "self_state")
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 
 
 def installed_version() -> str:
@@ -145,6 +146,13 @@ class JEPTConfig(PreTrainedConfig):
         prompt_frame_chunk_size, prompt_checkpointing: frames per pass of the prompt's per-frame Perceiver;
             with more than one chunk in a training step, each chunk's activations are recomputed in the
             backward pass instead of stored (same gradients, memory independent of batch x prompt length).
+        compile_model, compile_mode: LeRobot's names (as in ``pi0``): ``torch.compile`` each Transformer layer
+            and cross-attention block of the trained components in place (regional compilation: blocks of one
+            shape share their compiled code; parameter names and checkpoints unchanged), in ``compile_mode``
+            (``default``, ``reduce-overhead``, ``max-autotune``, ``max-autotune-no-cudagraphs``). The frozen
+            backbone stays as it is. The first steps of each phase compile (minutes on a CPU, which needs a C++
+            compiler); the values are those of the eager model up to rounding, and dropout draws its masks
+            from inductor's generator instead of torch's.
     """
 
     n_obs_steps: int = 8
@@ -233,6 +241,8 @@ class JEPTConfig(PreTrainedConfig):
     backbone_chunk_size: int = 64
     prompt_frame_chunk_size: int = 256
     prompt_checkpointing: bool = True
+    compile_model: bool = False
+    compile_mode: str = "default"
     drop_n_last_frames: int = 1  # the last frame of an episode has no next observation to predict
     plugin_version: str = field(default_factory=installed_version)
 
@@ -242,6 +252,10 @@ class JEPTConfig(PreTrainedConfig):
         if self.prompt_cache_dtype not in ("float32", "bfloat16", "float16"):
             raise ValueError(
                 f"prompt_cache_dtype must be float32, bfloat16 or float16, got {self.prompt_cache_dtype!r}."
+            )
+        if self.compile_mode not in COMPILE_MODES:
+            raise ValueError(
+                f"compile_mode must be one of {COMPILE_MODES} (torch.compile's modes), got {self.compile_mode!r}."
             )
         if self.phase_schedule not in PHASE_SCHEDULES:
             raise ValueError(

@@ -15,6 +15,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 
+from lerobot_jept.components.attention import CrossAttentionBlock
 from lerobot_jept.components.backbone import SpatialBackbone
 from lerobot_jept.components.encoders import ObservationTokenizer, PromptVideoEncoder
 from lerobot_jept.components.predictor import ActionHead
@@ -48,6 +49,24 @@ def perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
         encoder_self_layers=config.perceiver_encoder_self_layers,
         decoder_cross_layers=config.perceiver_decoder_cross_layers,
     )
+
+
+def compile_blocks(model: nn.Module, mode: str) -> int:
+    """``torch.compile`` in place each Transformer layer and cross-attention block of ``model`` outside its
+    backbone (``compile_model``) -> how many. Compiling blocks rather than the whole forward keeps the Python
+    around them (prompt caches, phase switches) eager, and blocks of one shape share their compiled code."""
+    blocks = [
+        module
+        for name, module in model.named_modules()
+        if isinstance(module, (nn.TransformerEncoderLayer, CrossAttentionBlock))
+        and not name.startswith("backbone")
+    ]
+    # each block shape x train or eval x gradient mode is a graph of its own: torch's default of 8 per code object
+    # would leave the later ones eager
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
+    for block in blocks:
+        block.compile(mode=mode)
+    return len(blocks)
 
 
 def make_backbone(config: JEPTConfig) -> SpatialBackbone:
@@ -248,6 +267,8 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         config.validate_features()
         self.config = config
         self.model = self.model_class(config)
+        if config.compile_model:
+            compile_blocks(self.model, config.compile_mode)
         # Optimizer steps taken; persistent so a resumed run continues any step-driven schedule.
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
         centres = bin_centres(config.num_action_bins, config.action_low, config.action_high)

@@ -173,3 +173,39 @@ def test_bank_prompts_travel_as_uint8_and_give_the_float_prompts_loss(tiny_build
     torch.testing.assert_close(losses[0][0], losses[1][0], rtol=0, atol=0)
     for name, grad in losses[0][1].items():
         torch.testing.assert_close(grad, losses[1][1][name], rtol=0, atol=0, msg=name)
+
+
+@pytest.mark.slow  # compiling takes about three minutes here
+def test_compiled_blocks_give_the_eager_loss_gradients_and_actions(tiny_build):
+    eager, pre, post = build_policy(tiny_build, freeze_backbone=True)
+    compiled, _, _ = build_policy(tiny_build, freeze_backbone=True, compile_model=True)
+    compiled.load_state_dict(eager.state_dict())
+    assert compiled.state_dict().keys() == eager.state_dict().keys()  # checkpoints are the eager model's
+    blocks = [m for m in compiled.model.modules() if getattr(m, "_compiled_call_impl", None) is not None]
+    assert blocks and not any(getattr(m, "_compiled_call_impl", None) for m in compiled.model.backbone.modules())
+    torch.manual_seed(0)
+    batch = pre(mixed_batch(eager.config, size=6))
+    eager.eval(), compiled.eval()  # no dropout: the two draw their masks from different generators
+    loss_ref, grads_ref = loss_and_grads(eager, batch)
+    loss, grads = loss_and_grads(compiled, batch)
+    torch.testing.assert_close(loss, loss_ref, rtol=1e-5, atol=1e-5)
+    assert grads.keys() == grads_ref.keys()
+    for name, grad in grads.items():
+        torch.testing.assert_close(grad, grads_ref[name], rtol=1e-4, atol=1e-5, msg=name)
+
+    obs = {k: v[:, -1] if k in ("observation.image", "observation.state") else v for k, v in batch.items()}
+    with torch.no_grad():
+        for policy in (eager, compiled):
+            policy.reset()
+        actions = [post(policy.select_action(obs)) for policy in (eager, compiled)]
+    torch.testing.assert_close(actions[1], actions[0])
+
+    compiled.train()  # a training step runs with inductor's dropout
+    loss, _ = compiled.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss)
+
+
+def test_compile_mode_is_checked():
+    with pytest.raises(ValueError, match="compile_mode must be one of"):
+        JEPTConfig.small(compile_mode="fast", device="cpu")
