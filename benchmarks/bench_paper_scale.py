@@ -18,8 +18,9 @@ on synthetic batches shaped like the preprocessor's output (bank prompts carry t
   seen before / a later step of the same episode. Goal <= 2.
 
 ``--speedup_shape=32,250`` measures the speedup at the paper's batch and prompt length (a GPU's figure);
-``--vision_backbone=NAME`` measures the peak with a visual prior in place of the ViT-B. On CUDA every timer waits
-for the GPU's queued work.
+``--vision_backbone=NAME`` measures the peak with a visual prior in place of the ViT-B; ``--compile_model``
+(``--compile_mode=MODE``) measures the speedup with both policies' blocks compiled (``compile_model``), its names
+ending ``_compiled``. On CUDA every timer waits for the GPU's queued work.
 """
 
 import argparse
@@ -119,7 +120,12 @@ def gflop(fn) -> float:
 
 
 def prompt_cache_speedup(
-    device: str, repeats: int, batch_size: int = 2, prompt_frames: int = 64, compile_model: bool = False
+    device: str,
+    repeats: int,
+    batch_size: int = 2,
+    prompt_frames: int = 64,
+    compile_model: bool = False,
+    compile_mode: str = "default",
 ) -> tuple[dict, dict]:
     """Step times and GFLOP without / with the cache in each of Algorithm 1's phases (the training alternates
     them).
@@ -131,7 +137,9 @@ def prompt_cache_speedup(
     the first uncached block and of the second cached one (its cache warm)."""
     runs = {}
     for cached in (False, True):
-        policy = paper_policy(device, prompt_token_cache=cached, compile_model=compile_model).train()
+        policy = paper_policy(
+            device, prompt_token_cache=cached, compile_model=compile_model, compile_mode=compile_mode
+        ).train()
         optimizer = torch.optim.AdamW(policy.get_optim_params())
         runs[cached] = (policy, optimizer, paper_batch(policy.config, batch_size, prompt_frames, device))
     times, flops = {}, {}
@@ -261,6 +269,7 @@ def main() -> None:
         action="store_true",
         help="the speedup with the policies' blocks compiled (--policy.compile_model), names ending _compiled",
     )
+    parser.add_argument("--compile_mode", default="default", help="torch.compile's mode with --compile_model")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     figures = set(args.figures.split(","))
@@ -277,7 +286,7 @@ def main() -> None:
     if "speedup" in figures:
         batch_size, prompt_frames = (int(n) for n in speedup_shape)
         times, flops = prompt_cache_speedup(
-            args.device, args.repeats, batch_size, prompt_frames, args.compile_model
+            args.device, args.repeats, batch_size, prompt_frames, args.compile_model, args.compile_mode
         )
         suffix = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
         suffix += "_compiled" if args.compile_model else ""
