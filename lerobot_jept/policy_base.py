@@ -18,6 +18,7 @@ from torch import Tensor, nn
 from lerobot_jept.components.attention import CrossAttentionBlock
 from lerobot_jept.components.backbone import SpatialBackbone
 from lerobot_jept.components.encoders import ObservationTokenizer, PromptVideoEncoder
+from lerobot_jept.components.perceiver import PerceiverIO
 from lerobot_jept.components.predictor import ActionHead
 from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
@@ -52,21 +53,21 @@ def perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
 
 
 def compile_blocks(model: nn.Module, mode: str) -> int:
-    """``torch.compile`` in place each Transformer layer and cross-attention block of ``model`` outside its
-    backbone (``compile_model``) -> how many. Compiling blocks rather than the whole forward keeps the Python
-    around them (prompt caches, phase switches) eager, and blocks of one shape share their compiled code."""
-    blocks = [
-        module
-        for name, module in model.named_modules()
-        if isinstance(module, (nn.TransformerEncoderLayer, CrossAttentionBlock))
-        and not name.startswith("backbone")
-    ]
-    # each block shape x train or eval x gradient mode is a graph of its own: torch's default of 8 per code object
-    # would leave the later ones eager
+    """``torch.compile`` in place each Perceiver-IO of ``model`` whole and each Transformer layer and
+    cross-attention block outside them, the backbone left as it is (``compile_model``) -> how many. Compiling
+    these rather than the whole forward keeps the Python around them (prompt caches, phase switches) eager,
+    and units of one shape share their compiled code."""
+    units: list[tuple[str, nn.Module]] = []
+    for name, module in model.named_modules():  # parents come before their children
+        inside = name.startswith("backbone") or any(name.startswith(f"{unit}.") for unit, _ in units)
+        if not inside and isinstance(module, (PerceiverIO, nn.TransformerEncoderLayer, CrossAttentionBlock)):
+            units.append((name, module))
+    # each unit's shape x train or eval x gradient mode is a graph of its own: torch's default of 8 per code
+    # object would leave the later ones eager
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-    for block in blocks:
-        block.compile(mode=mode)
-    return len(blocks)
+    for _, unit in units:
+        unit.compile(mode=mode)
+    return len(units)
 
 
 def make_backbone(config: JEPTConfig) -> SpatialBackbone:
