@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from lerobot_jept import JEPTConfig
+from lerobot_jept.components.perceiver import PerceiverIO
 from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
 from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from tests.lerobot_jept.test_policy import build_policy, mixed_batch
@@ -181,8 +182,12 @@ def test_compiled_blocks_give_the_eager_loss_gradients_and_actions(tiny_build):
     compiled, _, _ = build_policy(tiny_build, freeze_backbone=True, compile_model=True)
     compiled.load_state_dict(eager.state_dict())
     assert compiled.state_dict().keys() == eager.state_dict().keys()  # checkpoints are the eager model's
-    blocks = [m for m in compiled.model.modules() if getattr(m, "_compiled_call_impl", None) is not None]
-    assert blocks and not any(getattr(m, "_compiled_call_impl", None) for m in compiled.model.backbone.modules())
+    units = {
+        n for n, m in compiled.model.named_modules() if getattr(m, "_compiled_call_impl", None) is not None
+    }
+    perceivers = {n for n, m in compiled.model.named_modules() if isinstance(m, PerceiverIO)}
+    assert perceivers and perceivers <= units  # each Perceiver-IO whole
+    assert not any(n.startswith("backbone") or any(n.startswith(f"{p}.") for p in perceivers) for n in units)
     torch.manual_seed(0)
     batch = pre(mixed_batch(eager.config, size=6))
     eager.eval(), compiled.eval()  # no dropout: the two draw their masks from different generators
