@@ -19,7 +19,7 @@ on synthetic batches shaped like the preprocessor's output (bank prompts carry t
 
 ``--speedup_shape=32,250`` measures the speedup at the paper's batch and prompt length (a GPU's figure);
 ``--vision_backbone=NAME`` measures the peak with a visual prior in place of the ViT-B; ``--compile_model``
-(``--compile_mode=MODE``) measures the speedup with both policies' blocks compiled (``compile_model``), its names
+(``--compile_mode=MODE``) measures the speedup with both policies compiled (``compile_model``), its names
 ending ``_compiled``. On CUDA every timer waits for the GPU's queued work.
 """
 
@@ -267,7 +267,7 @@ def main() -> None:
     parser.add_argument(
         "--compile_model",
         action="store_true",
-        help="the speedup with the policies' blocks compiled (--policy.compile_model), names ending _compiled",
+        help="the speedup with both policies compiled (--policy.compile_model), names ending _compiled",
     )
     parser.add_argument("--compile_mode", default="default", help="torch.compile's mode with --compile_model")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)

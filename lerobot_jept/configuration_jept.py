@@ -146,9 +146,10 @@ class JEPTConfig(PreTrainedConfig):
         prompt_frame_chunk_size, prompt_checkpointing: frames per pass of the prompt's per-frame Perceiver;
             with more than one chunk in a training step, each chunk's activations are recomputed in the
             backward pass instead of stored (same gradients, memory independent of batch x prompt length).
-        compile_model, compile_mode: LeRobot's names (as in ``pi0``): ``torch.compile`` each Transformer layer
-            and cross-attention block of the trained components in place (regional compilation: blocks of one
-            shape share their compiled code; parameter names and checkpoints unchanged), in ``compile_mode``
+        compile_model, compile_mode: LeRobot's names (as in ``pi0``): ``torch.compile`` each Perceiver-IO whole
+            and each Transformer layer and cross-attention block outside them, in place (regional compilation:
+            units of one shape share their compiled code; parameter names and checkpoints unchanged), in
+            ``compile_mode``
             (``default``, ``reduce-overhead``, ``max-autotune``, ``max-autotune-no-cudagraphs``). The frozen
             backbone stays as it is. The first steps of each phase compile (minutes on a CPU, which needs a C++
             compiler); the values are those of the eager model up to rounding, and dropout draws its masks
