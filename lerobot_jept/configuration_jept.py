@@ -149,9 +149,8 @@ class JEPTConfig(PreTrainedConfig):
         compile_model, compile_mode: LeRobot's names (as in ``pi0``): ``torch.compile`` each Perceiver-IO whole
             and each Transformer layer and cross-attention block outside them, in place (regional compilation:
             units of one shape share their compiled code; parameter names and checkpoints unchanged), in
-            ``compile_mode``
-            (``default``, ``reduce-overhead``, ``max-autotune``, ``max-autotune-no-cudagraphs``). The frozen
-            backbone stays as it is. The first steps of each phase compile (minutes on a CPU, which needs a C++
+            ``compile_mode`` (``default``, ``reduce-overhead``, ``max-autotune``, ``max-autotune-no-cudagraphs``).
+            The frozen backbone stays as it is. The first steps of each phase compile (minutes on a CPU, which needs a C++
             compiler); the values are those of the eager model up to rounding, and dropout draws its masks
             from inductor's generator instead of torch's.
     """
