@@ -150,9 +150,9 @@ class JEPTConfig(PreTrainedConfig):
             and each Transformer layer and cross-attention block outside them, in place (regional compilation:
             units of one shape share their compiled code; parameter names and checkpoints unchanged), in
             ``compile_mode`` (``default``, ``reduce-overhead``, ``max-autotune``, ``max-autotune-no-cudagraphs``).
-            The frozen backbone stays as it is. The first steps of each phase compile (minutes on a CPU, which needs a C++
-            compiler); the values are those of the eager model up to rounding, and dropout draws its masks
-            from inductor's generator instead of torch's.
+            The frozen backbone stays as it is. The first steps of each phase compile (minutes on a CPU, which
+            needs a C++ compiler); the values are those of the eager model up to rounding, and dropout draws its
+            masks from inductor's generator instead of torch's.
     """
 
     n_obs_steps: int = 8

@@ -52,22 +52,21 @@ def perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
     )
 
 
-def compile_blocks(model: nn.Module, mode: str) -> int:
+def compile_units(model: nn.Module, mode: str) -> None:
     """``torch.compile`` in place each Perceiver-IO of ``model`` whole and each Transformer layer and
-    cross-attention block outside them, the backbone left as it is (``compile_model``) -> how many. Compiling
-    these rather than the whole forward keeps the Python around them (prompt caches, phase switches) eager,
-    and units of one shape share their compiled code."""
-    units: list[tuple[str, nn.Module]] = []
-    for name, module in model.named_modules():  # parents come before their children
-        inside = name.startswith("backbone") or any(name.startswith(f"{unit}.") for unit, _ in units)
-        if not inside and isinstance(module, (PerceiverIO, nn.TransformerEncoderLayer, CrossAttentionBlock)):
-            units.append((name, module))
+    cross-attention block outside them, the backbone left as it is (``compile_model``). Compiling these rather
+    than the whole forward keeps the Python around them (prompt caches, phase switches) eager, and units of one
+    shape share their compiled code."""
     # each unit's shape x train or eval x gradient mode is a graph of its own: torch's default of 8 per code
     # object would leave the later ones eager
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-    for _, unit in units:
-        unit.compile(mode=mode)
-    return len(units)
+    skip = ("backbone.",)
+    for name, module in model.named_modules():  # parents come before their children
+        if isinstance(module, (PerceiverIO, nn.TransformerEncoderLayer, CrossAttentionBlock)) and not (
+            f"{name}.".startswith(skip)
+        ):
+            module.compile(mode=mode)
+            skip += (f"{name}.",)
 
 
 def make_backbone(config: JEPTConfig) -> SpatialBackbone:
@@ -269,7 +268,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         self.config = config
         self.model = self.model_class(config)
         if config.compile_model:
-            compile_blocks(self.model, config.compile_mode)
+            compile_units(self.model, config.compile_mode)
         # Optimizer steps taken; persistent so a resumed run continues any step-driven schedule.
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
         centres = bin_centres(config.num_action_bins, config.action_low, config.action_high)
