@@ -9,7 +9,11 @@ on synthetic batches shaped like the preprocessor's output (bank prompts carry t
   ratio is printed too); blocks of ``--repeats`` timed steps in the order uncached, cached, cached, uncached,
   medians. Goal >= 5. ``paper_train_step_prompt_cache_flop_ratio`` is its arithmetic ceiling, counted in the
   same run (torch's FLOP counter over one untimed step of each kind: matrix products and attention): the speedup
-  a device would reach if it ran every step's arithmetic at one rate.
+  a device would reach if it ran every step's arithmetic at one rate. ``paper_backbone_gflop_per_s`` is the
+  ViT-B's rate on the batch's observation frames and ``paper_train_step_cached_rest_gflop_per_s`` the rate of the
+  rest of a cached step pair (its FLOPs past the ViT-B over its seconds past it); as fractions of the ViT-B's
+  rate, ``paper_train_step_rest_rate_measured`` is the latter and ``paper_train_step_rest_rate_needed`` the one
+  that work (in both steps) would need for the goal of 5 while the ViT-B runs at its measured rate.
 - ``paper_train_peak_gib_b32_p250``: peak memory of one training step at batch 32 with 250-frame prompts in
   each of Algorithm 1's two phases (the encoder, then the others), cache warm in bfloat16, measured in a child
   process (CUDA: ``max_memory_allocated``; CPU: the process's peak resident memory, model and batch included)
@@ -126,9 +130,9 @@ def prompt_cache_speedup(
     prompt_frames: int = 64,
     compile_model: bool = False,
     compile_mode: str = "default",
-) -> tuple[dict, dict]:
+) -> tuple[dict, dict, tuple[float, float] | None]:
     """Step times and GFLOP without / with the cache in each of Algorithm 1's phases (the training alternates
-    them).
+    them), and the GFLOP and seconds of the backbone's pass over the observation frames (none when compiled).
 
     Each policy runs in blocks of consecutive steps, as training does (a step right after the other policy's
     step pays for the memory and caches that step left cold), and the blocks come in the order uncached,
@@ -158,7 +162,31 @@ def prompt_cache_speedup(
             samples[cached] += step_times(step, repeats, warmup=0)
         for cached, values in samples.items():
             times[cached, phase] = statistics.median(values)
-    return times, flops
+    if not flops:
+        return times, flops, None
+    policy, _, batch = runs[True]
+    with torch.no_grad():
+        observation = lambda: policy.model.backbone_tokens(batch[IMAGE])  # noqa: E731
+        backbone = gflop(observation), median_time(observation, repeats + 1, warmup=1)
+    return times, flops, backbone
+
+
+def rest_rates(
+    times: dict, flops: dict, backbone: tuple[float, float], frames: int, prompt_frames: int, goal: float = 5
+) -> tuple[float, float, float]:
+    """The GFLOP/s of a cached step pair's work past the backbone's pass over its ``frames`` observation frames,
+    and that rate as a fraction of the backbone's, measured and needed for ``goal``: a step's seconds modelled as
+    its backbone GFLOP (observation frames, plus ``prompt_frames`` without the cache) at the backbone's rate and
+    the rest of its GFLOP at the rest's rate."""
+    phases = ("encoder", "others")
+    vit_gflop, vit_s = backbone
+    total = {cached: sum(flops[cached, phase] for phase in phases) for cached in (False, True)}
+    vit = {True: 2 * vit_gflop, False: 2 * vit_gflop * (frames + prompt_frames) / frames}
+    rest = {cached: total[cached] - vit[cached] for cached in (False, True)}
+    rest_rate = rest[True] / (sum(times[True, phase] for phase in phases) - 2 * vit_s)
+    room = vit[False] - goal * vit[True]  # <= 0: the goal is out of reach at any rate of the rest
+    needed = (goal * rest[True] - rest[False]) / room if room > 0 else float("inf")
+    return rest_rate, rest_rate / (vit_gflop / vit_s), needed
 
 
 def peak_child(device: str, batch_size: int, prompt_frames: int, vision_backbone: str) -> None:
@@ -285,7 +313,7 @@ def main() -> None:
 
     if "speedup" in figures:
         batch_size, prompt_frames = (int(n) for n in speedup_shape)
-        times, flops = prompt_cache_speedup(
+        times, flops, backbone = prompt_cache_speedup(
             args.device, args.repeats, batch_size, prompt_frames, args.compile_model, args.compile_mode
         )
         suffix = "" if (batch_size, prompt_frames) == (2, 64) else f"_b{batch_size}_p{prompt_frames}"
@@ -305,6 +333,13 @@ def main() -> None:
             print(
                 f"paper_train_step{suffix}_prompt_cache_{name}: {total[False] / total[True]:.2f}", flush=True
             )
+        if backbone is not None:
+            frames = batch_size * (JEPTConfig.n_obs_steps + 1)
+            rate, measured, needed = rest_rates(times, flops, backbone, frames, batch_size * prompt_frames)
+            print(f"paper_backbone{suffix}_gflop_per_s: {backbone[0] / backbone[1]:.0f}")
+            print(f"paper_train_step{suffix}_cached_rest_gflop_per_s: {rate:.0f}")
+            print(f"paper_train_step{suffix}_rest_rate_measured: {measured:.2f}")
+            print(f"paper_train_step{suffix}_rest_rate_needed: {needed:.2f}", flush=True)
     if "first_step" in figures:
         ratio, first, later = first_step_ratio(args.device, args.repeats + 1)
         print(f"select_action_first_step_s: {first:.3f}")

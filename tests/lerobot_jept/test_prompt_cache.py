@@ -214,3 +214,32 @@ def test_compiled_blocks_give_the_eager_loss_gradients_and_actions(tiny_build):
 def test_compile_mode_is_checked():
     with pytest.raises(ValueError, match="compile_mode must be one of"):
         JEPTConfig.small(compile_mode="fast", device="cpu")
+
+
+def test_rest_rates_invert_the_step_time_model():
+    """On step times made from the bench's model (the backbone at one rate, the rest at another), the rates come
+    back, and the rest's needed rate gives exactly the goal."""
+    from benchmarks.bench_paper_scale import rest_rates
+
+    frames, prompt_frames, per_frame = 18, 128, 33.7
+    vit = {True: frames * per_frame, False: (frames + prompt_frames) * per_frame}
+    rest = {
+        ("encoder", True): 289.0,
+        ("encoder", False): 286.0,
+        ("others", True): 578.0,
+        ("others", False): 575.0,
+    }
+
+    def model(vit_rate: float, rest_rate: float) -> tuple[dict, dict]:
+        flops = {(c, p): vit[c] + rest[p, c] for c in (False, True) for p in ("encoder", "others")}
+        times = {(c, p): vit[c] / vit_rate + rest[p, c] / rest_rate for c, p in flops}
+        return times, flops
+
+    times, flops = model(160.0, 100.0)
+    rate, measured, needed = rest_rates(times, flops, (vit[True], vit[True] / 160.0), frames, prompt_frames)
+    assert rate == pytest.approx(100.0) and measured == pytest.approx(100.0 / 160.0)
+    times, _ = model(160.0, needed * 160.0)
+    speedup = sum(v for (c, _), v in times.items() if not c) / sum(v for (c, _), v in times.items() if c)
+    assert speedup == pytest.approx(5.0)
+    # past the frames' ratio the goal is out of reach at any rate
+    assert rest_rates(times, flops, (vit[True], 1.0), frames, prompt_frames=3 * frames)[2] == float("inf")
