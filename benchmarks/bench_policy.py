@@ -6,9 +6,10 @@
 - ``train_step_vs_act``: one training step (forward, backward, AdamW) of the small jept configuration / one of
   LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
   size. Goal <= 2.
-- ``train_step_vs_jept_<type>``: one training step of each baseline (``dt_star``, ``vid2robot``, ``idm``) in its
-  small configuration / one of the small jept configuration, on batches of the same tiny build, same batch size
-  (each policy takes the frames its delta indices ask for), measured in the same run. No goal: their costs.
+- ``train_step_vs_jept_<type>``: one training step of each baseline (``dt_star``, ``vid2robot``, ``idm``, the
+  policy types ``jept_<type>``) in its small configuration / one of the small jept configuration, on batches of
+  the same tiny build, same batch size (each policy takes the frames its delta indices ask for), measured in
+  the same run. No goal: their costs.
 """
 
 import argparse
@@ -157,7 +158,7 @@ def main() -> None:
     small = dict(device="cpu", prompt_repo_id=f"{repo}_prompts")
     for config_cls in (DTStarConfig, Vid2RobotConfig, IDMConfig):
         baseline_s = train_step_time(config_cls.small(**small), repo, args.batch_size, args.repeats)
-        name = config_cls.small(**small).type
+        name = config_cls.small(**small).type.removeprefix("jept_")
         print(f"train_step_{name}_s: {baseline_s:.3f}")
         print(f"train_step_vs_jept_{name}: {baseline_s / jept_s:.2f}")
 

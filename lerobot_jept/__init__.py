@@ -1,11 +1,15 @@
 """JEPT (Joint Embedding Predictive Transformer) as a LeRobot policy plugin.
 
 ``import lerobot_policy_jept`` (what LeRobot's scripts do) registers the ``jept`` policy type and its baselines
-(``dt_star``, ``vid2robot``, ``idm``), their processor steps and the ``jept_metaworld`` / ``jept_robosuite`` envs. The package-level names below load on first use, so
-that the dataset builders, which import ``lerobot_jept.envs`` in every worker process, do not pay for the model.
+(``jept_dt_star``, ``jept_vid2robot``, ``jept_idm``), their processor steps and the ``jept_metaworld`` /
+``jept_robosuite`` envs, each when LeRobot loads the registry it extends (:mod:`lerobot_jept.registration`).
+The package-level names below load on first use, so that the dataset builders, which import
+``lerobot_jept.envs`` in every worker process, do not pay for the model.
 """
 
 import importlib
+
+from lerobot_jept.registration import register
 
 _EXPORTS = {
     "JEPTConfig": "lerobot_jept.configuration_jept",
@@ -22,12 +26,6 @@ _EXPORTS = {
 }
 
 __all__ = [*_EXPORTS, "register"]
-
-
-def register() -> None:
-    """Register everything the plugin adds to LeRobot (policy, processor steps, env types)."""
-    for module in sorted(set(_EXPORTS.values())):
-        importlib.import_module(module)
 
 
 def __getattr__(name: str):

@@ -13,10 +13,10 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot_jept.configuration_jept import BehaviourCloningConfig
 
 
-@PreTrainedConfig.register_subclass("dt_star")
+@PreTrainedConfig.register_subclass("jept_dt_star")
 @dataclass
 class DTStarConfig(BehaviourCloningConfig):
-    """DT* (``--policy.type=dt_star``). Every size is JEPT's (Table 5 defaults; the small configuration is
+    """DT* (``--policy.type=jept_dt_star``). Every size is JEPT's (Table 5 defaults; the small configuration is
     ``examples/configs/train_dt_star_small_cpu.json``), so a comparison changes only the objective:
 
     - shared with JEPT: ``vision_backbone`` and the backbone flags, ``perceiver_*`` and ``frame_perceiver_*``

@@ -1,7 +1,7 @@
 """``IDMConfig``: the inverse dynamics model of the BC+IDM baseline (paper Section 4.1).
 
-a_t = f(o_t, o_{t+1}), learned on labelled frames (``--policy.type=idm``), then used by ``jept-relabel`` to give
-every unlabelled frame of a ``_mix`` repo an action; BC is ``dt_star`` on the relabelled repo.
+a_t = f(o_t, o_{t+1}), learned on labelled frames (``--policy.type=jept_idm``), then used by ``jept-relabel`` to give
+every unlabelled frame of a ``_mix`` repo an action; BC is ``jept_dt_star`` on the relabelled repo.
 """
 
 from dataclasses import dataclass
@@ -11,10 +11,10 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot_jept.configuration_jept import JEPTConfig
 
 
-@PreTrainedConfig.register_subclass("idm")
+@PreTrainedConfig.register_subclass("jept_idm")
 @dataclass
 class IDMConfig(JEPTConfig):
-    """Inverse dynamics model (``--policy.type=idm``): JEPT's backbone, single-frame Perceiver tokenizer and
+    """Inverse dynamics model (``--policy.type=jept_idm``): JEPT's backbone, single-frame Perceiver tokenizer and
     action head (Table 5 defaults; the small configuration is ``examples/configs/train_idm_small_cpu.json``).
     The tokens of o_t and o_{t+1} (N_obs each) go through a bi-directional Transformer of the ``predictor_*``
     sizes, and the action head reads a_t from all of them. Loss: cross-entropy over the action bins on labelled

@@ -18,6 +18,7 @@ from lerobot.optim.schedulers import ConstantWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_jept.envs.spec import ACTION_LABELLED
+from lerobot_jept.registration import register_processor_steps
 
 PHASE_SCHEDULES = ("alternate", "joint")
 IDM_INPUTS = ("embedding", "self_state")
@@ -128,7 +129,14 @@ class JEPTConfig(PreTrainedConfig):
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
-            ``ORG/NAME_prompts``) and an optional local root for it.
+            ``ORG/NAME_prompts``) and an optional local root for it. Training draws a random prompt of each
+            sample's task from it; control, when neither the env nor the caller gives a prompt, takes the first
+            prompt of the task.
+        prompt_video: a video file (any format FFmpeg reads) shown as the prompt in control, in place of a bank
+            lookup: ``--policy.prompt_video=clip.mp4`` for ``lerobot-eval``, ``lerobot-rollout`` or
+            ``JEPTPolicy.from_pretrained(path, prompt_video=...)``. Decoded once with LeRobot's video decoding,
+            subsampled to ``max_prompt_length`` frames. ``prompt_root`` and ``prompt_video`` are local paths and
+            are never saved with a checkpoint.
         plugin_version: the lerobot_policy_jept version that made the checkpoint; loading it with an
             incompatible version fails with a message naming the version to install.
         cache_frame_tokens: ``select_action`` reuses per-frame tokens of the previous k - 1 frames (off only
@@ -234,6 +242,7 @@ class JEPTConfig(PreTrainedConfig):
 
     prompt_repo_id: str | None = None
     prompt_root: str | None = None
+    prompt_video: str | None = None
     cache_frame_tokens: bool = True
     prompt_token_cache: bool = True
     prompt_cache_dtype: str = "float32"
@@ -249,6 +258,7 @@ class JEPTConfig(PreTrainedConfig):
     def __post_init__(self):
         super().__post_init__()
         check_plugin_version(self.plugin_version, installed_version())
+        register_processor_steps(self)
         if self.prompt_cache_dtype not in ("float32", "bfloat16", "float16"):
             raise ValueError(
                 f"prompt_cache_dtype must be float32, bfloat16 or float16, got {self.prompt_cache_dtype!r}."
@@ -307,6 +317,17 @@ class JEPTConfig(PreTrainedConfig):
     @property
     def reward_delta_indices(self) -> None:
         return None
+
+    def _save_pretrained(self, save_directory) -> None:
+        """LeRobot's save, without the local paths (``prompt_root``, ``prompt_video``): a checkpoint carries no
+        path of the machine that wrote it."""
+        local = {"prompt_root": self.prompt_root, "prompt_video": self.prompt_video}
+        self.prompt_root = self.prompt_video = None
+        try:
+            super()._save_pretrained(save_directory)
+        finally:
+            for name, value in local.items():
+                setattr(self, name, value)
 
     def get_optimizer_preset(self) -> AdamWConfig:
         return AdamWConfig(
@@ -407,7 +428,7 @@ SMALL_CPU_OVERRIDES = dict(
 
 @dataclass
 class BehaviourCloningConfig(JEPTConfig):
-    """Base of the baselines that clone actions from the k context frames (``dt_star``, ``vid2robot``): JEPT's
+    """Base of the baselines that clone actions from the k context frames (``jept_dt_star``, ``jept_vid2robot``): JEPT's
     sizes, no joint embedding target (so no prompt terms), samples of k frames without a next one."""
 
     prompt_align_weight: float = 0.0

@@ -11,10 +11,10 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot_jept.configuration_jept import BehaviourCloningConfig
 
 
-@PreTrainedConfig.register_subclass("vid2robot")
+@PreTrainedConfig.register_subclass("jept_vid2robot")
 @dataclass
 class Vid2RobotConfig(BehaviourCloningConfig):
-    """Vid2Robot (``--policy.type=vid2robot``) built from JEPT's parts, as Appendix A.3 adapts it: the same
+    """Vid2Robot (``--policy.type=jept_vid2robot``) built from JEPT's parts, as Appendix A.3 adapts it: the same
     backbone and the same single-frame Perceiver encode prompt frames and observation frames (one module); the
     prompt's frame tokens are resampled by the prompt Perceiver (``prompt_perceiver_*``) into N_prt tokens; the
     observation tokens of the k context frames go through ``predictor_layers`` blocks of block-causal

@@ -51,7 +51,7 @@ class DTStarPolicy(ContextActionPolicy):
     """DT*: pi(a_t | o_{t-k+1..t}, prompt video) by behaviour cloning on labelled frames (L_act alone)."""
 
     config_class = DTStarConfig
-    name = "dt_star"
+    name = "jept_dt_star"
     model_class = DTStar
 
     def get_optim_params(self) -> list[dict]:

@@ -48,7 +48,7 @@ class IDMPolicy(DiscreteActionPolicy):
     """Inverse dynamics model: the action bin of a_t from the transition (o_t, o_{t+1})."""
 
     config_class = IDMConfig
-    name = "idm"
+    name = "jept_idm"
     model_class = IDM
 
     def get_optim_params(self) -> list[dict]:
@@ -73,5 +73,5 @@ class IDMPolicy(DiscreteActionPolicy):
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         raise NotImplementedError(
             "An inverse dynamics model needs the next observation, so it cannot act: relabel a mix with "
-            "`jept-relabel --policy.path=IDM_CHECKPOINT ...` and train --policy.type=dt_star on the result."
+            "`jept-relabel --policy.path=IDM_CHECKPOINT ...` and train --policy.type=jept_dt_star on the result."
         )

@@ -110,7 +110,7 @@ class Vid2RobotPolicy(ContextActionPolicy):
     """Vid2Robot-D (trained on ``_demo``) / Vid2Robot-M (on ``_mix``)."""
 
     config_class = Vid2RobotConfig
-    name = "vid2robot"
+    name = "jept_vid2robot"
     model_class = Vid2Robot
 
     def get_optim_params(self) -> list[dict]:
@@ -127,7 +127,7 @@ class Vid2RobotPolicy(ContextActionPolicy):
         """Prompt/robot video contrastive and temporal cycle consistency, on every frame."""
         cfg, m = self.config, self.model
         if PROMPT_VIDEO not in batch:
-            self.prompt(batch)  # raises the clear error
+            batch = {**batch, **self.deployment_prompt(batch)}
         prompt_mask = batch.get(PROMPT_MASK)
         prompt, prompt_frames = m.encode_prompt_frames(batch[PROMPT_VIDEO], prompt_mask, batch.get(PROMPT_ID))
         task_ids = self.task_ids(batch, obs.shape[0], obs.device)

@@ -1,9 +1,10 @@
-"""What JEPT and its baselines (``dt_star``, ``vid2robot``, ``idm``) share, robomimic-style: one base network with
+"""What JEPT and its baselines (``jept_dt_star``, ``jept_vid2robot``, ``jept_idm``) share, robomimic-style: one base network with
 the frozen-or-trained spatial backbone and the prompt path, builders for the parts the paper shares between them
 (single-frame Perceiver tokenizer, prompt video encoder, action head), and one base policy with the action bins,
 the masked action loss, the prompt lookup, the per-frame token cache of control and LeRobot's Hub hooks.
 """
 
+import dataclasses
 import json
 from collections import OrderedDict, deque
 from pathlib import Path
@@ -22,7 +23,7 @@ from lerobot_jept.components.perceiver import PerceiverIO
 from lerobot_jept.components.predictor import ActionHead
 from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
-from lerobot_jept.prompts import unit_float
+from lerobot_jept.prompts import PromptBank, load_prompt_video, unit_float
 
 PROMPT_VIDEO = "observation.prompt_video"
 PROMPT_MASK = "observation.prompt_video_mask"
@@ -278,8 +279,19 @@ class DiscreteActionPolicy(PreTrainedPolicy):
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, *args, **kwargs):
         """LeRobot's loading (safetensors only), with a version mismatch raised as itself, not as the config
-        parser's wrapper around it."""
+        parser's wrapper around it. Config options can be given by name (``prompt_video="clip.mp4"``), as
+        ``--policy.<option>`` gives them to LeRobot's commands."""
+        options = {
+            name: kwargs.pop(name) for name in list(kwargs) if name in cls.config_class.__dataclass_fields__
+        }
         try:
+            if options:
+                from lerobot.configs.policies import PreTrainedConfig
+
+                config = kwargs.pop("config", None) or PreTrainedConfig.from_pretrained(
+                    pretrained_name_or_path
+                )
+                kwargs["config"] = dataclasses.replace(config, **options)
             return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
         except Exception as err:
             cause = err
@@ -359,12 +371,43 @@ class DiscreteActionPolicy(PreTrainedPolicy):
 
     def prompt(self, batch: dict[str, Tensor]) -> Tensor:
         if PROMPT_VIDEO not in batch:
-            raise KeyError(
-                f"{self.name} needs a prompt video: the batch has no {PROMPT_VIDEO!r}. Set "
-                "--policy.prompt_repo_id to a prompt bank (the builder's ORG/NAME_prompts) or pass the prompt "
-                "video as an observation."
-            )
+            batch = {**batch, **self.deployment_prompt(batch)}
         return self.model.encode_prompt(batch[PROMPT_VIDEO], batch.get(PROMPT_MASK), batch.get(PROMPT_ID))
+
+    def deployment_prompt(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The prompt of a batch that brings none (control, where neither the env nor the caller gives one):
+        the video file ``prompt_video``, else the first prompt of the batch's task in the bank
+        ``prompt_repo_id``; both are read from this policy's config, so options given at evaluation or rollout
+        apply. Each is decoded once and kept."""
+        cfg = self.config
+        image = batch[cfg.image_key]
+        size = image.shape[0]
+        if cfg.prompt_video:
+            if self.__dict__.get("_prompt_file", (None,))[0] != cfg.prompt_video:
+                frames = load_prompt_video(cfg.prompt_video, cfg.max_prompt_length, cfg.image_size)
+                self.__dict__["_prompt_file"] = (cfg.prompt_video, frames)
+            video = self.__dict__["_prompt_file"][1][None].expand(size, -1, -1, -1, -1)
+            mask = torch.ones(video.shape[:2], dtype=torch.bool)
+        elif cfg.prompt_repo_id:
+            tasks = batch.get("task")
+            if tasks is None:
+                raise KeyError(
+                    f"{self.name} looks its prompt up by the `task` string, and the batch has none: pass "
+                    "--policy.prompt_video=clip.mp4 or the prompt video as observation.prompt_video."
+                )
+            tasks = [tasks] * size if isinstance(tasks, str) else list(tasks)
+            bank = self.__dict__.get("_prompt_bank")
+            if bank is None or (bank.repo_id, bank.root) != (cfg.prompt_repo_id, cfg.prompt_root):
+                bank = PromptBank(cfg.prompt_repo_id, cfg.prompt_root, cfg.max_prompt_length, cfg.image_size)
+                self.__dict__["_prompt_bank"] = bank
+            video, mask = bank.batch([bank.episodes(task)[0] for task in tasks], as_uint8=True)
+        else:
+            raise KeyError(
+                f"{self.name} needs a prompt video: the batch has no {PROMPT_VIDEO!r}. Pass "
+                "--policy.prompt_video=clip.mp4 (a video file of the task), --policy.prompt_repo_id=ORG/NAME_prompts "
+                "(a prompt bank, looked up by the task string), or the prompt video as an observation."
+            )
+        return {PROMPT_VIDEO: video.to(image.device), PROMPT_MASK: mask.to(image.device)}
 
     # Hub -------------------------------------------------------------------------------------------------
 
@@ -460,8 +503,8 @@ class DiscreteActionPolicy(PreTrainedPolicy):
 
 
 class ContextActionPolicy(DiscreteActionPolicy):
-    """Base of the baselines that read the actions of the k context frames from their own tokens (``dt_star``,
-    ``vid2robot``): the model's ``action_logits(prompt, obs)`` gives (B, k, A, bins); control takes the last."""
+    """Base of the baselines that read the actions of the k context frames from their own tokens (``jept_dt_star``,
+    ``jept_vid2robot``): the model's ``action_logits(prompt, obs)`` gives (B, k, A, bins); control takes the last."""
 
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
         """Behaviour cloning on the labelled frames, plus :meth:`auxiliary_losses` (per sample)."""
@@ -510,8 +553,7 @@ def card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) ->
         f"## {title}",
         "",
         "Joint Embedding Predictive Transformer and its baselines (`lerobot_policy_jept` "
-        f"{config.plugin_version}): `pip install lerobot_policy_jept`, then LeRobot finds the `{config.type}` "
-        "policy.",
+        f"{config.plugin_version}): once the package is installed, LeRobot finds the `{config.type}` policy.",
         "",
         f"- Training data: `{dataset_repo_id}`",
         f"- Prompt bank: `{config.prompt_repo_id}`",
@@ -519,19 +561,22 @@ def card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) ->
     for name, key in (("T_demo", "demo"), ("T_vid", "video"), ("T_unseen", "unseen")):
         if key in split:
             lines.append(f"- {name}: {', '.join(split[key]) or '(none)'}")
-    size = protocol.get("image_size", config.image_size)
-    task = (split.get("unseen") or split.get("demo") or ["button-press-v3"])[0]
     repo = config.repo_id or "<this repo>"
-    lines += [
-        "",
-        "Evaluate:",
-        "",
-        "```bash",
-        f"lerobot-eval --policy.path={repo} --env.type=jept_metaworld --env.task={task} "
-        f"--env.image_size={size} --env.prompt_repo_id={config.prompt_repo_id} "
-        f"--env.prompt_max_frames={config.max_prompt_length} --eval.n_episodes=50",
-        f"jept-eval-suite --policy.path={repo} --dataset.repo_id={dataset_repo_id} --n_episodes=50",
-        "```",
-        "",
-    ]
+    lines += ["", "Evaluate or deploy:", "", "```bash"]
+    if protocol.get("simulator") in ("metaworld", "robosuite"):
+        size = protocol.get("image_size", config.image_size)
+        task = (split.get("unseen") or split.get("demo") or [None])[0]
+        lines += [
+            f"pip install 'lerobot_policy_jept[{protocol['simulator']}]'",
+            f"lerobot-eval --policy.path={repo} --env.type=jept_{protocol['simulator']} --env.task={task} "
+            f"--env.image_size={size} --env.prompt_repo_id={config.prompt_repo_id} "
+            f"--env.prompt_max_frames={config.max_prompt_length} --eval.n_episodes=50",
+            f"jept-eval-suite --policy.path={repo} --dataset.repo_id={dataset_repo_id} --n_episodes=50",
+        ]
+    else:
+        lines += [
+            "pip install lerobot_policy_jept",
+            f"lerobot-rollout --policy.path={repo} --policy.prompt_video=clip.mp4 --robot.type=<your robot> ...",
+        ]
+    lines += ["```", ""]
     return "\n".join(lines)

@@ -1,4 +1,4 @@
-"""``make_idm_pre_post_processors``: LeRobot's standard steps and the action bins (the IDM takes no prompt)."""
+"""``make_jept_idm_pre_post_processors``: LeRobot's standard steps and the action bins (the IDM takes no prompt)."""
 
 from lerobot.processor.factory import make_default_policy_processor_steps, make_policy_processor_pipelines
 
@@ -6,7 +6,7 @@ from lerobot_jept.configuration_idm import IDMConfig
 from lerobot_jept.processor_jept import JeptActionBinsStep
 
 
-def make_idm_pre_post_processors(config: IDMConfig, dataset_stats=None, **kwargs):
+def make_jept_idm_pre_post_processors(config: IDMConfig, dataset_stats=None, **kwargs):
     s = make_default_policy_processor_steps(config, dataset_stats)
     bins = JeptActionBinsStep(config.num_action_bins, config.action_low, config.action_high)
     return make_policy_processor_pipelines(

@@ -91,9 +91,11 @@ class JeptActionBinsStep(ProcessorStep):
 class JeptPromptVideoStep(ProcessorStep):
     """Attach the prompt video ``observation.prompt_video`` (B, N, 3, H, W) in [0, 1] and its frame mask.
 
-    A prompt given by the caller is kept (resized to ``image_size`` if needed). Otherwise one comes from the
-    prompt bank ``repo_id`` by the sample's ``task``: a random prompt of the task for dataset samples (they
-    carry an ``index``), the task's first prompt at inference.
+    A prompt given by the caller (or the env) is kept, resized to ``image_size`` if needed. Dataset samples
+    (they carry an ``index``) get a random prompt of their task from the prompt bank ``repo_id``. Anything else
+    (control) passes through: the policy then takes the prompt its own config names (``prompt_video``, else
+    ``prompt_repo_id``), so options given at evaluation or rollout apply to a saved pipeline. ``root`` (a
+    local folder) is never saved with the pipeline.
     """
 
     repo_id: str | None = None
@@ -101,7 +103,6 @@ class JeptPromptVideoStep(ProcessorStep):
     max_frames: int = 250
     image_size: int = 224
     _bank: PromptBank | None = field(default=None, init=False, repr=False)
-    _last: tuple | None = field(default=None, init=False, repr=False)
 
     @property
     def bank(self) -> PromptBank:
@@ -111,14 +112,14 @@ class JeptPromptVideoStep(ProcessorStep):
 
     def __call__(self, transition):
         observation = dict(transition.get(TransitionKey.OBSERVATION) or {})
+        complementary = transition.get(TransitionKey.COMPLEMENTARY_DATA) or {}
         if PROMPT_VIDEO in observation:
             observation.pop(PROMPT_ID, None)  # a caller's prompt is identified by its content
             n = observation[PROMPT_VIDEO].shape[-4]
             observation[PROMPT_VIDEO] = self._as_given(observation[PROMPT_VIDEO])
             if PROMPT_MASK in observation and n > self.max_frames:
                 observation[PROMPT_MASK] = observation[PROMPT_MASK][:, subsample_indices(n, self.max_frames)]
-        else:
-            complementary = transition.get(TransitionKey.COMPLEMENTARY_DATA) or {}
+        elif "index" in complementary:
             tasks = complementary.get("task")
             if tasks is None:
                 raise ValueError(
@@ -127,21 +128,19 @@ class JeptPromptVideoStep(ProcessorStep):
                 )
             if self.repo_id is None:
                 raise ValueError(
-                    "JEPT needs a prompt video but none was given and no prompt bank is set: pass "
-                    "--policy.prompt_repo_id=ORG/NAME_prompts (built by jept-build-metaworld)."
+                    "JEPT trains on prompt videos but none was given and no prompt bank is set: pass "
+                    "--policy.prompt_repo_id=ORG/NAME_prompts (built by jept-build-metaworld or jept-prompts)."
                 )
             tasks = [tasks] if isinstance(tasks, str) else list(tasks)
-            training = "index" in complementary
             episodes = []
             for task in tasks:
                 candidates = self.bank.episodes(task)
-                pick = int(torch.randint(len(candidates), ())) if training else 0
-                episodes.append(candidates[pick])
-            if training or self._last is None or self._last[0] != episodes:
-                # inference repeats the same prompts every control step: build that batch once
-                ids = torch.tensor([self.prompt_id(ep) for ep in episodes], dtype=torch.long)
-                self._last = (episodes, (*self.bank.batch(episodes, as_uint8=True), ids))
-            observation[PROMPT_VIDEO], observation[PROMPT_MASK], observation[PROMPT_ID] = self._last[1]
+                episodes.append(candidates[int(torch.randint(len(candidates), ()))])
+            ids = torch.tensor([self.prompt_id(ep) for ep in episodes], dtype=torch.long)
+            observation[PROMPT_VIDEO], observation[PROMPT_MASK] = self.bank.batch(episodes, as_uint8=True)
+            observation[PROMPT_ID] = ids
+        else:
+            return transition
         new = dict(transition)
         new[TransitionKey.OBSERVATION] = observation
         return new
@@ -168,7 +167,6 @@ class JeptPromptVideoStep(ProcessorStep):
     def get_config(self) -> dict[str, Any]:
         return {
             "repo_id": self.repo_id,
-            "root": self.root,
             "max_frames": self.max_frames,
             "image_size": self.image_size,
         }

@@ -1,6 +1,6 @@
 """``jept-prompt-probe``: a checkpoint measured offline on held-out labelled episodes, per task and per split.
 
-Works for every policy type that takes a prompt (``jept``, ``dt_star``, ``vid2robot``), on a labelled
+Works for every policy type that takes a prompt (``jept``, ``jept_dt_star``, ``jept_vid2robot``), on a labelled
 LeRobotDataset that was not trained on: the builder's ``ORG/NAME_probe`` repo (every task of every split, seeds
 disjoint from everything else), or any labelled repo.
 
@@ -116,10 +116,10 @@ def load_checkpoint(cfg: ProbeConfig):
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     policy_cfg = PreTrainedConfig.from_pretrained(cfg.policy.path)
-    if policy_cfg.type == "idm":
+    if policy_cfg.type == "jept_idm":
         raise ProbeError(
             f"{cfg.policy.path} is an inverse dynamics model: it takes no prompt and cannot act. Probe the policy "
-            "trained on its labels (jept-relabel, then --policy.type=dt_star) instead."
+            "trained on its labels (jept-relabel, then --policy.type=jept_dt_star) instead."
         )
     cfg.policy.apply(policy_cfg)
     if cfg.prompt_repo_id:

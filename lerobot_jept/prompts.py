@@ -5,12 +5,13 @@ at most ``max_frames`` and resized to the model's resolution; decoded prompts ar
 """
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot.datasets.video_utils import decode_video_frames
+from lerobot.datasets.video_utils import decode_video_frames, get_video_duration_in_s, get_video_info
 from torch import Tensor
 
 
@@ -38,11 +39,34 @@ def resize_frames(frames: Tensor, size: int) -> Tensor:
     return F.interpolate(frames, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
 
 
+def as_uint8(frames: Tensor, size: int) -> Tensor:
+    """(N, 3, H, W) float frames in [0, 1] -> (N, 3, size, size) uint8 (how decoded prompts are kept)."""
+    return (resize_frames(frames.float(), size) * 255).round().clamp(0, 255).to(torch.uint8)
+
+
+def load_prompt_video(path: str | Path, max_frames: int, image_size: int) -> Tensor:
+    """(N, 3, size, size) uint8 frames of a prompt video file (any format FFmpeg reads), uniformly subsampled to
+    at most ``max_frames``, decoded with LeRobot's own video decoding."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"Prompt video {str(path)!r} does not exist: --policy.prompt_video takes the path of a video file "
+            "showing the task (e.g. an .mp4 recorded by any camera)."
+        )
+    fps = get_video_info(path).get("video.fps")
+    if not fps:
+        raise ValueError(f"Prompt video {path} has no video stream: give a video file that FFmpeg can read.")
+    length = max(1, int(get_video_duration_in_s(path) * fps + 1e-6))
+    timestamps = [float(i / fps) for i in subsample_indices(length, max_frames)]
+    frames = decode_video_frames(path, timestamps, tolerance_s=1 / fps - 1e-4)
+    return as_uint8(frames, image_size)
+
+
 class PromptBank:
     """Prompt videos of a LeRobotDataset, by task string."""
 
     def __init__(self, repo_id: str, root: str | None, max_frames: int, image_size: int):
-        self.repo_id, self.max_frames, self.image_size = repo_id, max_frames, image_size
+        self.repo_id, self.root, self.max_frames, self.image_size = repo_id, root, max_frames, image_size
         self.dataset = LeRobotDataset(repo_id, root=root)
         meta = self.dataset.meta
         if not meta.video_keys and not meta.camera_keys:
@@ -86,7 +110,7 @@ class PromptBank:
             first = ep["dataset_from_index"]
             frames = torch.stack([self.dataset[int(first + i)][self.camera_key] for i in keep])
         logging.debug("Decoded prompt episode %d of %s: %d frames", episode, self.repo_id, len(keep))
-        return (resize_frames(frames.float(), self.image_size) * 255).round().clamp(0, 255).to(torch.uint8)
+        return as_uint8(frames, self.image_size)
 
     def batch(self, episodes: list[int], as_uint8: bool = False) -> tuple[Tensor, Tensor]:
         """Prompt videos (B, N, 3, H, W) float in [0, 1] (``as_uint8``: the decoded uint8 frames, a quarter of

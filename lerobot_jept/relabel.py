@@ -1,8 +1,8 @@
-"""``jept-relabel``: the BC+IDM baseline's labelling step. An ``idm`` checkpoint gives every unlabelled frame of a
+"""``jept-relabel``: the BC+IDM baseline's labelling step. An ``jept_idm`` checkpoint gives every unlabelled frame of a
 ``_mix`` repo (``observation.action_labelled`` 0) the action bin centre it predicts from (o_t, o_{t+1}); labelled
 frames keep their actions unchanged. The result is an ordinary LeRobotDataset: every frame is labelled, a
 per-frame ``pseudo_label`` says where the IDM wrote the action, stats cover all frames, and ``meta/jept_relabel.json``
-with the IDM checkpoint and its accuracy on held-out labelled frames. BC is then ``dt_star`` trained on it.
+with the IDM checkpoint and its accuracy on held-out labelled frames. BC is then ``jept_dt_star`` trained on it.
 
     jept-relabel --policy.path=outputs/train/idm/checkpoints/last/pretrained_model \\
         --dataset.repo_id=ORG/NAME_mix --output_repo_id=ORG/NAME_mix_idm [--heldout_repo_id=ORG/HELDOUT_demo]
@@ -66,10 +66,10 @@ def load_idm(cfg: RelabelConfig):
     from lerobot_jept.modeling_idm import IDMPolicy
 
     policy_cfg = PreTrainedConfig.from_pretrained(cfg.policy.path)
-    if policy_cfg.type != "idm":
+    if policy_cfg.type != "jept_idm":
         raise RelabelError(
             f"{cfg.policy.path} is a {policy_cfg.type!r} checkpoint; jept-relabel needs an inverse dynamics model "
-            "trained with `lerobot-train --policy.type=idm`."
+            "trained with `lerobot-train --policy.type=jept_idm`."
         )
     cfg.policy.apply(policy_cfg)
     policy = IDMPolicy.from_pretrained(cfg.policy.path, config=policy_cfg).eval()

@@ -11,8 +11,8 @@ entry points in order and prints each command before it runs it:
    ``_prompts``, ``_probe`` and ``_mix`` repos under ``$HF_LEROBOT_HOME`` (shared with any other study or
    command that builds the same flags);
 2. per split, the random 7-bin policy's success on every task (the floor), when ``random_episodes`` > 0;
-3. per split, method and seed: ``lerobot-train`` (for BC+IDM: ``lerobot-train`` of the ``idm``, ``jept-relabel``
-   of the mix, then ``lerobot-train`` of ``dt_star`` on the relabelled repo), then ``jept-eval-suite`` (LeRobot's
+3. per split, method and seed: ``lerobot-train`` (for BC+IDM: ``lerobot-train`` of the ``jept_idm``, ``jept-relabel``
+   of the mix, then ``lerobot-train`` of ``jept_dt_star`` on the relabelled repo), then ``jept-eval-suite`` (LeRobot's
    eval on every task, plus the offline probe on the build's ``_probe`` repo);
 4. per split, ``jept-compare`` over the methods and seeds;
 5. ``report.md`` with the tables (mean and 95% interval over seeds, the paper's numbers beside ours on the
@@ -81,8 +81,8 @@ class BuildSpec:
 @dataclass
 class MethodSpec:
     """One column of the tables. ``kind``: ``train`` (``lerobot-train`` with ``config`` on the split's ``data``
-    repo, ``mix`` or ``demo``) or ``bc_idm`` (an ``idm`` from ``idm_config`` on ``_demo``, ``jept-relabel`` of
-    ``_mix``, then ``config`` — a ``dt_star`` config — on the relabelled repo). ``args``: ``lerobot-train`` flags
+    repo, ``mix`` or ``demo``) or ``bc_idm`` (an ``jept_idm`` from ``idm_config`` on ``_demo``, ``jept-relabel`` of
+    ``_mix``, then ``config`` — a ``jept_dt_star`` config — on the relabelled repo). ``args``: ``lerobot-train`` flags
     of this method (a ``jept`` variant is ``jept`` with overrides)."""
 
     name: str = "JEPT"

@@ -35,6 +35,20 @@ def load(repo_id: str, **kwargs):
     return LeRobotDataset(repo_id, **kwargs)  # found under $HF_LEROBOT_HOME, as lerobot-train finds it
 
 
+def write_clip(frames, path, fps: int = 20) -> None:
+    """(N, 3, H, W) uint8 frames -> an MPEG-4 file, as a user's camera would give one."""
+    import av
+
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("mpeg4", rate=fps)
+        stream.height, stream.width = frames.shape[-2:]
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"qscale": "1"}
+        for frame in frames.permute(0, 2, 3, 1).numpy():
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
+        container.mux(stream.encode())
+
+
 @pytest.fixture(scope="session")
 def tiny_build():
     """A real tiny Meta-World build, ``test/mw_tiny_{demo,video,prompts,probe,mix}``, shared by all tests."""

@@ -4,7 +4,7 @@ The sequence is ``[E_prt | o_{t-k+1}, h_{t-k+2}, ..., o_t, h_{t+1}]`` (paper, eq
 of tokens of one item (the prompt, one observation, one joint embedding). The paper's rule (Appendix A.2):
 a token attends to every token of a preceding group and to the tokens of its own group, never to a later
 group. Rules are declared per (query kind, key kind) pair, in the style of Octo's block transformer, so a
-variant is a new rule set, not new index arithmetic: DT* (``dt_star``) drops the joint embedding tokens,
+variant is a new rule set, not new index arithmetic: DT* (``jept_dt_star``) drops the joint embedding tokens,
 ``[E_prt | o_{t-k+1}, ..., o_t]``, and its rule set never lets a token see an ``emb`` group.
 """
 

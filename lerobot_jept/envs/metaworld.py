@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_jept.envs import spec
-from lerobot_jept.envs.rendering import setup_offscreen_gl
+from lerobot_jept.envs.rendering import import_simulator, setup_offscreen_gl
 
 ROBOT_TYPE = "sawyer"
 ACTION_DIM = 4
@@ -98,8 +98,7 @@ def _mt1_task(task: str):
     ``metaworld.MT1`` builds an env and resets it 50 times to draw its goals (about a second); the envs of one
     evaluation batch share the result. It restores numpy's global random state, so skipping it changes nothing.
     """
-    import metaworld
-
+    metaworld = import_simulator("metaworld", "metaworld")
     mt1 = metaworld.MT1(task, seed=42)
     return mt1.train_classes[task], mt1.train_tasks[0]
 
@@ -107,9 +106,8 @@ def _mt1_task(task: str):
 @cache
 def scripted_expert(task: str):
     """Meta-World's scripted policy for ``task`` (the one LeRobot's Meta-World config maps it to)."""
-    import metaworld.policies
-
-    return getattr(metaworld.policies, _lerobot_metaworld_config()["TASK_POLICY_MAPPING"][task])()
+    policies = import_simulator("metaworld.policies", "metaworld")
+    return getattr(policies, _lerobot_metaworld_config()["TASK_POLICY_MAPPING"][task])()
 
 
 class JeptMetaworldEnv(spec.OneImagePerState):

@@ -1,8 +1,9 @@
 """Prompt videos for evaluation envs, and the ``lerobot-eval`` env configs built on them.
 
-:class:`PromptVideoWrapper` adds the episode's prompt video to every observation of a JEPT env: prompt
-``seed % num_prompts`` of the task from a prompt bank, so 50 seeded episodes over 10 prompts are the paper's
-"10 prompt videos x 5 seeds", exactly and reproducibly. :class:`JeptEnvConfig` is what ``jept_metaworld`` and
+:class:`PromptVideoWrapper` gives each episode of a JEPT env a prompt: prompt ``seed % num_prompts`` of the
+task from a prompt bank, so 50 seeded episodes over 10 prompts are the paper's "10 prompt videos x 5 seeds",
+exactly and reproducibly; the env's processor (:class:`PromptVideoFromBankStep`) hands the video to the policy
+on the episode's first step only. :class:`JeptEnvConfig` is what ``jept_metaworld`` and
 ``jept_robosuite`` share.
 """
 
@@ -18,14 +19,20 @@ from lerobot.envs.configs import EnvConfig, _make_vec_env_cls
 from lerobot.processor import PolicyProcessorPipeline, ProcessorStep, TransitionKey
 from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
 
-from lerobot_jept.prompts import PromptBank
-
 PROMPT_VIDEO, PROMPT_MASK = "observation.prompt_video", "observation.prompt_video_mask"
+PROMPT_EPISODE, PROMPT_NEW = "observation.prompt_episode", "observation.prompt_new"
 
 
 class PromptVideoWrapper(gym.Wrapper):
-    """Adds ``prompt_video`` (N, H, W, 3) uint8 and ``prompt_video_mask`` (N,) to the observations: prompts of
-    the env's own task, or of the task described by ``prompt_description`` (another task's video)."""
+    """Adds the episode's prompt to the observations as ``prompt_episode`` (1,) int64, the episode of the
+    prompt bank shown, and ``prompt_new`` (1,) uint8, 1 on the first observation of an episode: prompts of
+    the env's own task, or of the task described by ``prompt_description`` (another task's video).
+
+    The video itself crosses to the policy once per episode: :class:`PromptVideoFromBankStep`, the env's
+    processor, decodes it from the same bank and attaches it when ``prompt_new`` is set (the policy encodes a
+    prompt once per episode), so a control step does not carry 250 frames through LeRobot's observation path.
+    :meth:`prompt_video` gives the frames of the current episode's prompt.
+    """
 
     def __init__(
         self,
@@ -35,63 +42,68 @@ class PromptVideoWrapper(gym.Wrapper):
         max_frames: int,
         prompt_description: str | None = None,
     ):
+        from lerobot_jept.prompts import PromptBank  # LeRobot's datasets: loaded when an env is built
+
         super().__init__(env)
-        size = env.unwrapped.image_size
-        self.bank = PromptBank(repo_id, root, max_frames, size)
+        self.bank = PromptBank(repo_id, root, max_frames, env.unwrapped.image_size)
         self.episodes = self.bank.episodes(prompt_description or env.unwrapped.task_description)
-        self.max_frames = max_frames
         self.observation_space = spaces.Dict(
             {
                 **env.observation_space.spaces,
-                "prompt_video": spaces.Box(0, 255, (max_frames, size, size, 3), np.uint8),
-                "prompt_video_mask": spaces.Box(0, 1, (max_frames,), np.uint8),
+                "prompt_episode": spaces.Box(0, np.iinfo(np.int32).max, (1,), np.int64),
+                "prompt_new": spaces.Box(0, 1, (1,), np.uint8),
             }
         )
         self.prompt_episode: int | None = None
         self._resets = 0
-        self._arrays = None
 
     @property
     def task_description(self) -> str:
         return self.env.unwrapped.task_description
 
-    def _choose(self, seed: int | None) -> None:
-        """Prompt ``seed % num_prompts`` of the task (the next one in turn when reset without a seed)."""
-        index = seed if seed is not None else self._resets
-        self.prompt_episode = self.episodes[index % len(self.episodes)]
-        frames = self.bank.video(self.prompt_episode).permute(0, 2, 3, 1).numpy()
-        video = np.zeros(self.observation_space["prompt_video"].shape, np.uint8)
-        mask = np.zeros(self.max_frames, np.uint8)
-        video[: len(frames)], mask[: len(frames)] = frames, 1
-        self._arrays = {"prompt_video": video, "prompt_video_mask": mask}
+    def prompt_video(self) -> np.ndarray:
+        """(N, H, W, 3) uint8 frames of the current episode's prompt."""
+        return self.bank.video(self.prompt_episode).permute(0, 2, 3, 1).numpy()
+
+    def _observation(self, obs: dict, new: bool) -> dict:
+        prompt = {"prompt_episode": np.array([self.prompt_episode]), "prompt_new": np.array([new], np.uint8)}
+        return {**obs, **prompt}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Prompt ``seed % num_prompts`` of the task (the next one in turn when reset without a seed)."""
         obs, info = self.env.reset(seed=seed, options=options)
-        self._choose(seed)
+        index = seed if seed is not None else self._resets
+        self.prompt_episode = self.episodes[index % len(self.episodes)]
         self._resets += 1
-        return {**obs, **self._arrays}, info
+        return self._observation(obs, True), info
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        return {**obs, **self._arrays}, reward, terminated, truncated, info
+        return self._observation(obs, False), reward, terminated, truncated, info
 
 
-class PromptVideoLayoutStep(ProcessorStep):
-    """The env's prompt video, (B, N, H, W, 3) in 0..255 after LeRobot's generic conversion, to the policy's
-    (B, N, 3, H, W) in [0, 1]; the frame mask to bool."""
+class PromptVideoFromBankStep(ProcessorStep):
+    """The env's processor: on an episode's first observation (``prompt_new``), the prompt video of each env
+    (``prompt_episode`` of the bank) as (B, N, 3, H, W) uint8 with its (B, N) frame mask; on the others,
+    nothing (the policy keeps the episode's prompt encoding). Decoded prompts are cached by the bank."""
+
+    def __init__(self, repo_id: str, root: str | None, max_frames: int, image_size: int):
+        self.repo_id, self.root, self.max_frames, self.image_size = repo_id, root, max_frames, image_size
+        self._bank = None
 
     def __call__(self, transition):
         observation = dict(transition.get(TransitionKey.OBSERVATION) or {})
-        if PROMPT_VIDEO in observation:
-            video = observation[PROMPT_VIDEO]
-            if video.ndim == 4:
-                video = video[None]
-            observation[PROMPT_VIDEO] = video.permute(0, 1, 4, 2, 3).float() / 255
-            if PROMPT_MASK in observation:
-                observation[PROMPT_MASK] = observation[PROMPT_MASK].reshape(video.shape[:2]) > 0.5
-        new = dict(transition)
-        new[TransitionKey.OBSERVATION] = observation
-        return new
+        episode, new = observation.pop(PROMPT_EPISODE, None), observation.pop(PROMPT_NEW, None)
+        if episode is not None and bool((new > 0.5).any()):
+            if self._bank is None:
+                from lerobot_jept.prompts import PromptBank
+
+                self._bank = PromptBank(self.repo_id, self.root, self.max_frames, self.image_size)
+            episodes = [int(e) for e in episode.reshape(-1).tolist()]
+            observation[PROMPT_VIDEO], observation[PROMPT_MASK] = self._bank.batch(episodes, as_uint8=True)
+        new_transition = dict(transition)
+        new_transition[TransitionKey.OBSERVATION] = observation
+        return new_transition
 
     def transform_features(self, features):
         return features
@@ -180,4 +192,11 @@ class JeptEnvConfig(EnvConfig):
         return out
 
     def get_env_processors(self):
-        return PolicyProcessorPipeline(steps=[PromptVideoLayoutStep()]), PolicyProcessorPipeline(steps=[])
+        steps = []
+        if self.prompt_repo_id is not None:
+            steps.append(
+                PromptVideoFromBankStep(
+                    self.prompt_repo_id, self.prompt_root, self.prompt_max_frames, self.image_size
+                )
+            )
+        return PolicyProcessorPipeline(steps=steps), PolicyProcessorPipeline(steps=[])

@@ -3,10 +3,12 @@
 MuJoCo picks its GL backend from ``MUJOCO_GL`` when it is first imported. Without a display, the default
 (glfw) fails deep inside an env constructor, so every entry point calls :func:`setup_offscreen_gl` before
 importing a simulator: it selects EGL unless the user chose otherwise, and checks that the backend's shared
-library can be loaded, failing with one sentence that names the Debian package to install.
+library can be loaded, failing with one sentence that names the Debian package to install. The simulators
+themselves are extras of the package, imported through :func:`import_simulator` only when an env is built.
 """
 
 import ctypes.util
+import importlib
 import os
 
 # backend -> (shared library that must load, Debian packages that provide it)
@@ -43,3 +45,17 @@ def setup_offscreen_gl(default: str = "egl") -> str:
             f"{GL_BACKENDS[other][1]}`."
         )
     return backend
+
+
+def import_simulator(module: str, extra: str):
+    """Import ``module`` of a simulator, or fail naming the package extra that installs it."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name is None or e.name.split(".")[0] != module.split(".")[0]:
+            raise
+        raise ModuleNotFoundError(
+            f"{module} is not installed; the {extra} envs and builders need it: "
+            f"pip install 'lerobot_policy_jept[{extra}]'",
+            name=e.name,
+        ) from e

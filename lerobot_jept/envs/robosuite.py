@@ -16,7 +16,7 @@ from gymnasium import spaces
 
 from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs import spec
-from lerobot_jept.envs.rendering import setup_offscreen_gl
+from lerobot_jept.envs.rendering import import_simulator, setup_offscreen_gl
 from lerobot_jept.envs.robosuite_experts import make_expert
 
 ARMS = {"panda": "Panda", "sawyer": "Sawyer", "iiwa": "IIWA", "ur5e": "UR5e"}
@@ -109,14 +109,14 @@ class JeptRobosuiteEnv(spec.OneImagePerState):
         if self._env is not None:
             return
         setup_offscreen_gl()
-        import robosuite
-        from robosuite.controllers import load_composite_controller_config
+        robosuite = import_simulator("robosuite", "robosuite")
+        controllers = import_simulator("robosuite.controllers", "robosuite")
 
         robot = ARMS[self.arm]
         self._env = robosuite.make(
             MANIPULATIONS[self.manipulation],
             robots=robot,
-            controller_configs=load_composite_controller_config(robot=robot),
+            controller_configs=controllers.load_composite_controller_config(robot=robot),
             has_renderer=False,
             has_offscreen_renderer=True,
             use_camera_obs=False,

@@ -7,12 +7,18 @@ residual error larger than the dead zone of the middle bin still moves the arm, 
 """
 
 import numpy as np
-from robosuite.utils.transform_utils import quat2mat
 
 POS_SCALE = 0.05  # OSC_POSE: an action of 1 moves the end effector target 5 cm
 ROT_SCALE = 0.5  # ... or rotates it 0.5 rad
 GAIN = 2.0
 OPEN, CLOSE = -1.0, 1.0
+
+
+def quat2mat(quat_xyzw: np.ndarray) -> np.ndarray:
+    """robosuite's rotation matrix of an (x, y, z, w) quaternion (imported when an expert first runs)."""
+    from robosuite.utils.transform_utils import quat2mat as robosuite_quat2mat
+
+    return robosuite_quat2mat(quat_xyzw)
 
 
 def yaw_of(quat_xyzw: np.ndarray) -> float:

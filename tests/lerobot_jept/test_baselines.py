@@ -1,4 +1,4 @@
-"""The paper's baselines (``dt_star``, ``vid2robot``, ``idm`` + ``jept-relabel``) and ``jept-compare``, on the
+"""The paper's baselines (``jept_dt_star``, ``jept_vid2robot``, ``jept_idm`` + ``jept-relabel``) and ``jept-compare``, on the
 real tiny Meta-World build: what each objective sees, save/reload, and the LeRobot entry points."""
 
 import json

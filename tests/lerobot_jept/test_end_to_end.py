@@ -16,7 +16,7 @@ from lerobot.envs.utils import env_to_policy_features, preprocess_observation
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
 from lerobot_jept.envs.configs import JeptMetaworldEnvConfig
-from tests.conftest import load
+from tests.conftest import load, write_clip
 
 BIN = Path(sys.executable).parent
 MIX, PROMPTS = "test/mw_tiny_mix", "test/mw_tiny_prompts"
@@ -37,9 +37,18 @@ def run(args: list[str], cwd: Path, ok: bool = True) -> str:
 
 
 def lerobot_eval(
-    model: Path, out: Path, cwd: Path, prompts: str = PROMPTS, episodes: int = 1, steps: int = 10
+    model: Path,
+    out: Path,
+    cwd: Path,
+    prompts: str = PROMPTS,
+    episodes: int = 1,
+    steps: int = 10,
+    prompt: list[str] | None = None,
 ) -> dict:
-    """``lerobot-eval`` of a checkpoint on the unseen handle-press-v3 of the tiny build; its eval_info.json."""
+    """``lerobot-eval`` of a checkpoint on the unseen handle-press-v3 of the tiny build; its eval_info.json.
+    The env shows the bank ``prompts``' videos unless ``prompt`` gives other flags."""
+    if prompt is None:
+        prompt = [f"--env.prompt_repo_id={prompts}", "--env.prompt_max_frames=4"]
     run(
         [
             "lerobot-eval",
@@ -48,8 +57,7 @@ def lerobot_eval(
             "--env.task=handle-press-v3",
             "--env.image_size=64",
             f"--env.episode_length={steps}",
-            f"--env.prompt_repo_id={prompts}",
-            "--env.prompt_max_frames=4",
+            *prompt,
             f"--eval.n_episodes={episodes}",
             f"--eval.batch_size={episodes}",
             "--policy.device=cpu",
@@ -132,6 +140,41 @@ def test_lerobot_eval_reports_success_and_writes_videos(trained):
 
 
 @pytest.mark.slow
+def test_lerobot_eval_takes_the_prompt_from_a_video_file(trained):
+    """No prompt from the env: ``--policy.prompt_video`` reaches the saved policy, and so does
+    ``--policy.prompt_repo_id`` (a bank that does not exist fails by its name, so it was the one used)."""
+    from lerobot_jept.prompts import PromptBank
+
+    tmp, out, _ = trained
+    model = out / "checkpoints/last/pretrained_model"
+    assert "root" not in json.loads((model / "policy_preprocessor.json").read_text())["steps"][2]["config"]
+    bank = PromptBank(PROMPTS, None, 1000, 64)
+    clip = tmp / "clip.mp4"
+    write_clip(bank.video(bank.episodes("Press a handle down")[0]), clip)
+    info = lerobot_eval(model, tmp / "eval_clip", tmp, prompt=[f"--policy.prompt_video={clip}"], steps=5)
+    assert info["overall"]["n_episodes"] == 1
+    proc = subprocess.run(
+        [
+            str(BIN / "lerobot-eval"),
+            f"--policy.path={model}",
+            "--env.type=jept_metaworld",
+            "--env.task=handle-press-v3",
+            "--env.image_size=64",
+            "--env.episode_length=5",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            "--policy.device=cpu",
+            "--policy.prompt_repo_id=test/no_such_prompts",
+            f"--output_dir={tmp / 'eval_missing_bank'}",
+        ],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode != 0 and "test/no_such_prompts" in proc.stdout + proc.stderr
+
+
+@pytest.mark.slow
 def test_eval_suite_writes_table_and_chart(trained):
     tmp, out, _ = trained
     suite = tmp / "suite"
@@ -197,7 +240,18 @@ def test_env_observation_matches_a_builder_frame(tiny_build):
     err = (image - recorded).abs().mean()
     assert err < 0.06 and (image.flip(1, 2) - recorded).abs().mean() > 3 * err  # same picture, upright
     torch.testing.assert_close(obs["observation.state"][0], frame["observation.state"])
-    assert obs["observation.prompt_video"].shape == (1, 250, 64, 64, 3)
+    # the prompt crosses once per episode: the env's processor attaches it on the first step only
+    assert "observation.prompt_video" not in obs and obs["observation.prompt_new"].item() == 1
+    env_pre, _ = env_cfg.get_env_processors()
+    first = env_pre(obs)
+    video = first["observation.prompt_video"]
+    assert video.shape[0] == 1 and 1 < video.shape[1] <= 250 and video.shape[2:] == (3, 64, 64)
+    assert (
+        first["observation.prompt_video"].dtype == torch.uint8
+        and first["observation.prompt_video_mask"].all()
+    )
+    later = env_pre({**obs, "observation.prompt_new": torch.zeros(1, 1)})
+    assert "observation.prompt_video" not in later and "observation.prompt_episode" not in later
 
 
 def test_prompt_choice_is_deterministic_per_seed(tiny_build):
@@ -208,7 +262,9 @@ def test_prompt_choice_is_deterministic_per_seed(tiny_build):
     chosen = {}
     for seed in (0, 1, 2, 3, 0, 1):
         obs, _ = env.reset(seed=seed)
-        chosen.setdefault(seed, []).append((env.prompt_episode, obs["prompt_video"].copy()))
+        assert obs["prompt_episode"][0] == env.prompt_episode and obs["prompt_new"][0] == 1
+        chosen.setdefault(seed, []).append((env.prompt_episode, env.prompt_video().copy()))
+        assert env.step(np.zeros(4, np.float32))[0]["prompt_new"][0] == 0
     env.close()
     for picks in chosen.values():
         assert all(p[0] == picks[0][0] for p in picks)
@@ -228,7 +284,9 @@ def test_prompt_task_shows_another_tasks_prompt_videos(tiny_build):
         assert env.episodes == reach.episodes and set(env.episodes).isdisjoint(own.episodes)
         for seed in (0, 1):
             obs, _ = env.reset(seed=seed)
-            assert np.array_equal(obs["prompt_video"], reach.reset(seed=seed)[0]["prompt_video"])
+            reach.reset(seed=seed)
+            assert obs["prompt_episode"] == reach.prompt_episode
+            assert np.array_equal(env.prompt_video(), reach.prompt_video())
             assert env.unwrapped.task == "button-press-v3"  # the scene and success are the env task's
             assert np.array_equal(obs["pixels"], own.reset(seed=seed)[0]["pixels"])
     finally:

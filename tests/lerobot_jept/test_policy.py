@@ -14,7 +14,7 @@ from lerobot_jept import JEPTConfig, JEPTPolicy
 from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_VIDEO
 from lerobot_jept.processor_jept import JeptActionBinsStep
 from lerobot_jept.prompts import PromptNotFoundError
-from tests.conftest import load
+from tests.conftest import load, write_clip
 
 MIX, PROMPTS = "test/mw_tiny_mix", "test/mw_tiny_prompts"
 
@@ -319,27 +319,89 @@ def test_overfits_a_tiny_batch(tiny_build):
 def test_prompt_bank_lookup(tiny_build):
     from lerobot.processor import TransitionKey
 
-    _, pre, _ = build_policy(tiny_build)
+    policy, pre, _ = build_policy(tiny_build)
     step = pre.steps[2]
-    obs = {TransitionKey.OBSERVATION: {}, TransitionKey.COMPLEMENTARY_DATA: {"task": ["Press a handle down"]}}
-    first = step(obs)[TransitionKey.OBSERVATION][PROMPT_VIDEO]
-    again = step(obs)[TransitionKey.OBSERVATION][PROMPT_VIDEO]
-    torch.testing.assert_close(first, again)  # inference: deterministic
+    control = {
+        TransitionKey.OBSERVATION: {},
+        TransitionKey.COMPLEMENTARY_DATA: {"task": ["Press a handle down"]},
+    }
+    assert step(control) is control  # control: the policy's own config names the prompt
+    image = {"observation.image": torch.zeros(1, 3, 64, 64), "task": ["Press a handle down"]}
+    first = policy.deployment_prompt(image)[PROMPT_VIDEO]
+    torch.testing.assert_close(
+        first, policy.deployment_prompt(image)[PROMPT_VIDEO]
+    )  # the task's first prompt
     assert first.shape == (1, 4, 3, 64, 64) and first.dtype == torch.uint8  # bank prompts travel as uint8
     assert (first.float() / 255).std() > 0.05
     training = {
-        **obs,
+        **control,
         TransitionKey.COMPLEMENTARY_DATA: {"task": ["Press a handle down"] * 16, "index": torch.arange(16)},
     }
     videos = step(training)[TransitionKey.OBSERVATION][PROMPT_VIDEO]
     assert any(not torch.equal(videos[0], v) for v in videos[1:])  # training: random prompt of the task
     given = torch.rand(1, 3, 3, 32, 32)
-    out = step({**obs, TransitionKey.OBSERVATION: {PROMPT_VIDEO: given}})[TransitionKey.OBSERVATION]
+    out = step({**control, TransitionKey.OBSERVATION: {PROMPT_VIDEO: given}})[TransitionKey.OBSERVATION]
     assert out[PROMPT_VIDEO].shape == (1, 3, 3, 64, 64)  # the caller's prompt, at model resolution
-    as_uint8 = step({**obs, TransitionKey.OBSERVATION: {PROMPT_VIDEO: first}})[TransitionKey.OBSERVATION]
+    as_uint8 = step({**control, TransitionKey.OBSERVATION: {PROMPT_VIDEO: first}})[TransitionKey.OBSERVATION]
     torch.testing.assert_close(as_uint8[PROMPT_VIDEO], first.float() / 255)  # a uint8 prompt means 0-255
     with pytest.raises(PromptNotFoundError, match=r"'Open a door'.*test/mw_tiny_prompts"):
-        step({**obs, TransitionKey.COMPLEMENTARY_DATA: {"task": ["Open a door"]}})
+        step(
+            {
+                **training,
+                TransitionKey.COMPLEMENTARY_DATA: {"task": ["Open a door"], "index": torch.arange(1)},
+            }
+        )
+    with pytest.raises(PromptNotFoundError, match=r"'Open a door'"):
+        policy.deployment_prompt({**image, "task": ["Open a door"]})
+
+
+def test_prompt_video_file_is_the_prompt_in_control(tiny_build, tmp_path):
+    from lerobot_jept.prompts import PromptBank, load_prompt_video, subsample_indices
+
+    policy, pre, _ = build_policy(tiny_build)
+    bank = PromptBank(PROMPTS, None, 1000, 64)
+    frames = bank.video(bank.episodes("Press a handle down")[1])  # not the bank's first prompt of the task
+    clip = tmp_path / "clip.mp4"
+    write_clip(frames, clip)
+    decoded = load_prompt_video(clip, 4, 64)
+    expected = frames[subsample_indices(len(frames), 4)]
+    assert decoded.shape == (4, 3, 64, 64) and decoded.dtype == torch.uint8
+    assert (decoded.float() - expected.float()).abs().mean() < 8  # the same frames, through a lossy codec
+
+    ds = load(MIX)
+    frame = ds[0]
+    obs = pre(
+        {"observation.image": frame["observation.image"], "observation.state": frame["observation.state"]}
+    )
+    policy.eval()
+    policy.config.prompt_video = str(clip)
+    policy.reset()
+    from_file = policy.select_action(obs)
+    policy.reset()
+    given = policy.select_action({**obs, PROMPT_VIDEO: decoded[None].float() / 255})
+    torch.testing.assert_close(from_file, given)
+    policy.config.prompt_video = str(tmp_path / "missing.mp4")
+    policy.reset()
+    with pytest.raises(FileNotFoundError, match="--policy.prompt_video"):
+        policy.select_action(obs)
+
+
+def test_checkpoints_carry_no_local_path(tiny_build, tmp_path):
+    import json
+
+    policy, pre, _ = build_policy(
+        tiny_build, prompt_root="/somewhere/local", prompt_video="/home/me/clip.mp4"
+    )
+    policy.save_pretrained(tmp_path)
+    pre.save_pretrained(tmp_path)
+    saved = (tmp_path / "config.json").read_text() + (tmp_path / "policy_preprocessor.json").read_text()
+    assert "/somewhere/local" not in saved and "clip.mp4" not in saved
+    assert json.loads((tmp_path / "config.json").read_text())["prompt_repo_id"] == PROMPTS
+    assert policy.config.prompt_root == "/somewhere/local"  # the live config keeps its paths
+    reloaded = JEPTPolicy.from_pretrained(
+        tmp_path, prompt_video="/data/clip.mp4", prompt_repo_id="other/bank"
+    )
+    assert reloaded.config.prompt_video == "/data/clip.mp4" and reloaded.config.prompt_repo_id == "other/bank"
 
 
 @pytest.mark.parametrize(

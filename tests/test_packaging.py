@@ -1,0 +1,69 @@
+"""The package as a LeRobot user gets it: a wheel installed with plain uv into a new Python 3.12 environment
+that holds only LeRobot, from outside the checkout (so no setting of this repository applies)."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+CONFIG = ROOT / "examples/configs/train_jept_small_cpu.json"
+UV = shutil.which("uv") or str(Path.home() / ".local/bin/uv")
+SIMULATORS = ("metaworld", "robosuite", "mujoco", "mink")
+
+
+def run(args: list, cwd: Path) -> subprocess.CompletedProcess:
+    proc = subprocess.run(
+        [str(a) for a in args], cwd=cwd, capture_output=True, text=True, env=os.environ.copy()
+    )
+    assert proc.returncode == 0, f"{args[:3]} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    return proc
+
+
+def test_plugin_import_loads_no_simulator_and_prints_nothing(tmp_path):
+    code = (
+        "import sys, lerobot_policy_jept\n"
+        f"loaded = sorted({{m.split('.')[0] for m in sys.modules}} & set({SIMULATORS!r}))\n"
+        "assert not loaded, loaded\n"
+        "assert 'torch' not in sys.modules\n"
+    )
+    proc = run([sys.executable, "-c", code], tmp_path)
+    assert proc.stdout == "" and proc.stderr == ""
+
+
+@pytest.mark.slow
+def test_wheel_installs_into_a_plain_lerobot_env_and_trains(tiny_build, tmp_path):
+    run([UV, "build", "--no-config", "--wheel", "--out-dir", tmp_path / "dist", ROOT], tmp_path)
+    (wheel,) = (tmp_path / "dist").glob("lerobot_policy_jept-*.whl")
+    venv = tmp_path / "venv"
+    python, bin_dir = venv / "bin/python", venv / "bin"
+    run([UV, "venv", "--no-config", "--python", "3.12", venv], tmp_path)
+    run([UV, "pip", "install", "--no-config", "--python", python, "lerobot==0.6.1"], tmp_path)
+    run([UV, "pip", "install", "--no-config", "--python", python, wheel], tmp_path)
+    # the simulators are extras, and they resolve with LeRobot's numpy too
+    installed = run([UV, "pip", "freeze", "--no-config", "--python", python], tmp_path).stdout
+    assert not any(line.split("==")[0] in SIMULATORS for line in installed.splitlines()), installed
+    run([UV, "pip", "install", "--no-config", "--dry-run", "--python", python, f"{wheel}[sim]"], tmp_path)
+
+    help_text = run([bin_dir / "lerobot-train", "--policy.type=jept", "--help"], tmp_path).stdout
+    assert "--policy.prompt_repo_id" in help_text
+    out = tmp_path / "train"
+    run(
+        [
+            bin_dir / "lerobot-train",
+            f"--config_path={CONFIG}",
+            "--dataset.repo_id=test/mw_tiny_mix",
+            "--policy.prompt_repo_id=test/mw_tiny_prompts",
+            "--policy.max_prompt_length=4",
+            "--batch_size=4",
+            "--num_workers=0",
+            "--steps=2",
+            "--save_freq=2",
+            f"--output_dir={out}",
+        ],
+        tmp_path,
+    )
+    assert (out / "checkpoints/last/pretrained_model/model.safetensors").is_file()
