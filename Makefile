@@ -59,6 +59,7 @@ test-all: test test-slow
 
 bench: setup
 	@$(RUN) -m benchmarks.bench_plugin
+	@$(RUN) -m benchmarks.bench_eval
 	@$(RUN) -m benchmarks.bench_builder
 	@$(RUN) -m benchmarks.bench_policy
 	@$(RUN) -m benchmarks.bench_paper_scale

@@ -96,7 +96,13 @@ def assemble(cfg: BuildConfig, sim: Simulator, paths: BuildPaths, record: dict, 
         assembled[role] = names
         assembled.pop("mix", None)
     mix_names = [s.name for s in shards if s.role in ("demo", "video")]
-    if assembled.get("mix") != mix_names or not paths.repo("mix").exists():
+    if not cfg.demo_tasks:  # no labelled frame: the videos join demos of another build through jept-mix
+        print(
+            f"No demo tasks, so no {paths.repo_id_of('mix')} (a mix needs labelled frames): mix "
+            f"{paths.repo_id_of('video')} with demos through `jept-mix --demo_repo_ids=[...] "
+            f"--video_repo_ids=[{paths.repo_id_of('video')}] --output_repo_id=...`."
+        )
+    elif assembled.get("mix") != mix_names or not paths.repo("mix").exists():
         build_mix(paths, sim.action_feature(), bool(cfg.demo_tasks), bool(cfg.video_tasks))
         assembled["mix"] = mix_names
     record["assembled"] = assembled

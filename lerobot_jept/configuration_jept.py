@@ -9,8 +9,10 @@ A small configuration that trains on a 2-core CPU is :meth:`JEPTConfig.small`, a
 lerobot-train config file ``examples/configs/train_jept_small_cpu.json``.
 """
 
+import sys
 from dataclasses import dataclass, field
 
+import numpy as np
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType, NormalizationMode
 from lerobot.optim.optimizers import AdamWConfig
@@ -23,6 +25,7 @@ from lerobot_jept.registration import register_processor_steps
 PHASE_SCHEDULES = ("alternate", "joint")
 IDM_INPUTS = ("embedding", "self_state")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+ACTION_RANGES = ("fixed", "dataset")
 
 
 def installed_version() -> str:
@@ -91,6 +94,11 @@ class JEPTConfig(PreTrainedConfig):
         action_head_dim, action_head_heads, action_head_layers, action_head_ff_dim: Gamma_act (256, 4, 2, 512).
         obs_head_hidden_dim, obs_head_layers: Gamma_obs, an MLP with LeakyReLU (256, 3).
         num_action_bins, action_low, action_high: the action discretisation (7 bins over the env's [-1, 1]).
+        action_range, action_lows, action_highs: not in the paper, whose envs all act in [-1, 1]. ``"fixed"``
+            (default): every dimension over [``action_low``, ``action_high``]. ``"dataset"``: each dimension over
+            its own [min, max] in the training data (from LeRobot's dataset statistics), for absolute actions
+            such as a real arm's joint angles in degrees; the fitted ranges are kept in ``action_lows`` /
+            ``action_highs`` and saved with the checkpoint (or given directly).
         action_dim: action size; taken from the dataset's ``action`` feature, needed only for datasets without
             one (expert videos alone).
         action_loss_weight: c in eq. 9 (8).
@@ -217,6 +225,9 @@ class JEPTConfig(PreTrainedConfig):
     num_action_bins: int = 7
     action_low: float = -1.0
     action_high: float = 1.0
+    action_range: str = "fixed"
+    action_lows: list[float] | None = None
+    action_highs: list[float] | None = None
     action_dim: int | None = None
 
     action_loss_weight: float = 8.0
@@ -295,6 +306,19 @@ class JEPTConfig(PreTrainedConfig):
             raise ValueError(
                 f"action_low ({self.action_low}) must be below action_high ({self.action_high})."
             )
+        if self.action_range not in ACTION_RANGES:
+            raise ValueError(f"action_range must be one of {ACTION_RANGES}, got {self.action_range!r}.")
+        if (self.action_lows is None) != (self.action_highs is None) or (
+            self.action_lows is not None
+            and (
+                len(self.action_lows) != len(self.action_highs)
+                or not all(lo < hi for lo, hi in zip(self.action_lows, self.action_highs, strict=True))
+            )
+        ):
+            raise ValueError(
+                "action_lows and action_highs give each action dimension's range: both or neither, of one length, "
+                f"each low below its high; got {self.action_lows} and {self.action_highs}."
+            )
         if self.phase_steps < 1:
             raise ValueError(f"phase_steps must be >= 1, got {self.phase_steps}.")
 
@@ -330,6 +354,18 @@ class JEPTConfig(PreTrainedConfig):
                 setattr(self, name, value)
 
     def get_optimizer_preset(self) -> AdamWConfig:
+        """AdamW with one learning rate per parameter group (the policy's ``get_optim_params``). LeRobot
+        replaces any ``--optimizer.*`` flag with this preset, so such a flag is refused here, not ignored."""
+        given = sorted({arg.split("=")[0] for arg in sys.argv[1:] if arg.startswith("--optimizer.")})
+        if given:
+            raise ValueError(
+                f"{', '.join(given)} would be ignored: {self.type} trains each parameter group at its own rate, "
+                "set by --policy.optimizer_lr_encoder, --policy.optimizer_lr_prompt and "
+                "--policy.optimizer_lr_predictor (and --policy.optimizer_weight_decay, "
+                "--policy.optimizer_grad_clip_norm). For one rate for every parameter instead, pass "
+                "--use_policy_training_preset=false with --optimizer.type=adamw --optimizer.lr=... and a "
+                "--scheduler.type."
+            )
         return AdamWConfig(
             lr=self.optimizer_lr_predictor,
             weight_decay=self.optimizer_weight_decay,
@@ -342,6 +378,37 @@ class JEPTConfig(PreTrainedConfig):
     @property
     def image_key(self) -> str:
         return next(iter(self.image_features))
+
+    def fit_action_range(self, dataset_stats: dict | None) -> None:
+        """With ``action_range="dataset"``, each action dimension's range is its [min, max] over the training
+        data (LeRobot's dataset statistics), kept in ``action_lows`` / ``action_highs`` (and so in the
+        checkpoint); once set, they are not fitted again."""
+        if self.action_range != "dataset" or self.action_lows is not None:
+            return
+        stats = (dataset_stats or {}).get(ACTION) or {}
+        if "min" not in stats or "max" not in stats:
+            raise ValueError(
+                "--policy.action_range=dataset takes each action dimension's range from the dataset's statistics "
+                "(min and max of `action`), and there are none: train on a LeRobotDataset with an `action` "
+                "feature, or give the ranges with --policy.action_lows=[...] --policy.action_highs=[...]."
+            )
+        lows = np.asarray(stats["min"], dtype=np.float64).reshape(-1)
+        highs = np.asarray(stats["max"], dtype=np.float64).reshape(-1)
+        constant = highs - lows < 1e-6  # a dimension that never moves: one bin width either side
+        lows[constant], highs[constant] = lows[constant] - 1.0, highs[constant] + 1.0
+        self.action_lows, self.action_highs = lows.tolist(), highs.tolist()
+
+    def action_bounds(self) -> tuple:
+        """The discretisation's range: per-dimension lists (``action_lows``, ``action_highs``), or the one
+        range [``action_low``, ``action_high``] of every dimension."""
+        if self.action_lows is not None:
+            return self.action_lows, self.action_highs
+        if self.action_range == "dataset":
+            raise ValueError(
+                "action_range=dataset but the per-dimension ranges were never fitted: build the policy with "
+                "the dataset's statistics (make_policy(cfg, ds_meta=...)) or pass --policy.action_lows/highs."
+            )
+        return self.action_low, self.action_high
 
     @property
     def resolved_action_dim(self) -> int:

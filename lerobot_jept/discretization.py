@@ -8,11 +8,14 @@ the policy predicts a class per dimension whose bin centre is then executed.
 import numpy as np
 
 
-def bin_centres(num_bins: int, low: float = -1.0, high: float = 1.0) -> np.ndarray:
-    """(num_bins,) evenly spaced bin centres, from ``low`` to ``high`` inclusive."""
+def bin_centres(num_bins: int, low=-1.0, high=1.0) -> np.ndarray:
+    """Evenly spaced bin centres from ``low`` to ``high`` inclusive: (num_bins,) for one range, (A, num_bins)
+    for per-dimension ranges (``low`` and ``high`` of shape (A,))."""
     if num_bins < 2:
         raise ValueError(f"num_bins must be at least 2, got {num_bins}.")
-    return np.linspace(low, high, num_bins)
+    return np.linspace(
+        np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64), num_bins, axis=-1
+    )
 
 
 def to_bin_indices(action: np.ndarray, num_bins: int, low: float = -1.0, high: float = 1.0) -> np.ndarray:

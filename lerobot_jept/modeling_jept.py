@@ -340,7 +340,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
-        return self.bin_centres[self._control_logits(prompt, obs, h_past, batch[OBS_STATE]).argmax(-1)]
+        return self.bin_actions(self._control_logits(prompt, obs, h_past, batch[OBS_STATE]).argmax(-1))
 
     def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, state: Tensor) -> Tensor:
         """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and s_t

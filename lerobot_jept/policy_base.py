@@ -272,7 +272,8 @@ class DiscreteActionPolicy(PreTrainedPolicy):
             compile_units(self.model, config.compile_mode)
         # Optimizer steps taken; persistent so a resumed run continues any step-driven schedule.
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
-        centres = bin_centres(config.num_action_bins, config.action_low, config.action_high)
+        config.fit_action_range(kwargs.get("dataset_stats"))
+        centres = bin_centres(config.num_action_bins, *config.action_bounds())
         self.register_buffer("bin_centres", torch.as_tensor(centres, dtype=torch.float32), persistent=False)
         self.reset()
 
@@ -302,6 +303,16 @@ class DiscreteActionPolicy(PreTrainedPolicy):
             raise cause from None
 
     # Training ---------------------------------------------------------------------------------------------
+
+    def bin_actions(self, indices: Tensor) -> Tensor:
+        """(..., A) bin indices -> (..., A) actions at the bin centres (each dimension's own with per-dimension
+        ranges)."""
+        centres = self.bin_centres
+        if centres.ndim == 1:
+            return centres[indices]
+        return torch.gather(centres.expand(*indices.shape[:-1], *centres.shape), -1, indices[..., None])[
+            ..., 0
+        ]
 
     def lr_groups(self, groups: list[tuple[float, list[nn.Module]]]) -> list[dict]:
         """AdamW parameter groups ``[(lr, modules), ...]`` of the trainable parameters; a parameter shared by two
@@ -533,7 +544,7 @@ class ContextActionPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch)
         obs = self.context_tokens(batch[self.config.image_key], batch[OBS_STATE])
         logits = self.model.action_logits(prompt, obs)[:, -1]
-        return self.bin_centres[logits.argmax(-1)]
+        return self.bin_actions(logits.argmax(-1))
 
 
 def frame_mean(values: Tensor, frame_ok: Tensor) -> Tensor:

@@ -8,7 +8,8 @@ from lerobot_jept.processor_jept import JeptActionBinsStep
 
 def make_jept_idm_pre_post_processors(config: IDMConfig, dataset_stats=None, **kwargs):
     s = make_default_policy_processor_steps(config, dataset_stats)
-    bins = JeptActionBinsStep(config.num_action_bins, config.action_low, config.action_high)
+    config.fit_action_range(dataset_stats)
+    bins = JeptActionBinsStep(config.num_action_bins, *config.action_bounds())
     return make_policy_processor_pipelines(
         input_steps=[s.rename_observations, s.add_batch_dim, s.to_device, s.normalize, bins],
         output_steps=[s.unnormalize, s.to_cpu],

@@ -40,8 +40,8 @@ class JeptActionBinsStep(ProcessorStep):
     """
 
     num_bins: int = 7
-    low: float = -1.0
-    high: float = 1.0
+    low: float | list[float] = -1.0
+    high: float | list[float] = 1.0
     num_clipped: int = field(default=0, init=False)
     num_values: int = field(default=0, init=False)
 
@@ -61,19 +61,22 @@ class JeptActionBinsStep(ProcessorStep):
             steps = action.shape[1] if action.ndim == 3 else 1
             mask = labelled.reshape(labelled.shape[0], -1)[:, :steps] > 0.5
             finite = finite & mask.reshape(*action.shape[:-1], 1).to(finite.device)
-        outside = finite & ((action < self.low) | (action > self.high))
+        low = torch.as_tensor(self.low, dtype=action.dtype, device=action.device)
+        high = torch.as_tensor(self.high, dtype=action.dtype, device=action.device)
+        outside = finite & ((action < low) | (action > high))
         clipped = int(outside.sum())
         if clipped and not self.num_clipped:
             logging.warning(
                 "jept_action_bins: %d action values lie outside [%s, %s] and are clipped into the end bins; "
-                "set --policy.action_low/--policy.action_high to the env's action range if this is wrong.",
+                "set --policy.action_low/--policy.action_high to the env's action range, or "
+                "--policy.action_range=dataset for each dimension's range in the data (absolute actions).",
                 clipped,
                 self.low,
                 self.high,
             )
         self.num_clipped += clipped
         self.num_values += int(finite.sum())
-        scaled = (action.clamp(self.low, self.high) - self.low) / (self.high - self.low) * (self.num_bins - 1)
+        scaled = (torch.clamp(action, low, high) - low) / (high - low) * (self.num_bins - 1)
         bins = torch.where(finite, scaled.round(), torch.full_like(scaled, IGNORE_INDEX)).long()
         new = dict(transition)
         new[TransitionKey.ACTION] = bins
@@ -185,7 +188,8 @@ def make_jept_pre_post_processors(
     prompt = JeptPromptVideoStep(
         config.prompt_repo_id, config.prompt_root, config.max_prompt_length, config.image_size
     )
-    bins = JeptActionBinsStep(config.num_action_bins, config.action_low, config.action_high)
+    config.fit_action_range(dataset_stats)
+    bins = JeptActionBinsStep(config.num_action_bins, *config.action_bounds())
     return make_policy_processor_pipelines(
         input_steps=[s.rename_observations, s.add_batch_dim, prompt, s.to_device, s.normalize, bins],
         output_steps=[s.unnormalize, s.to_cpu],

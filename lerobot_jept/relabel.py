@@ -106,7 +106,7 @@ def to_bins(actions: np.ndarray, config) -> np.ndarray:
 
     from lerobot_jept.processor_jept import JeptActionBinsStep
 
-    step = JeptActionBinsStep(config.num_action_bins, config.action_low, config.action_high)
+    step = JeptActionBinsStep(config.num_action_bins, *config.action_bounds())
     return step({TransitionKey.ACTION: torch.from_numpy(actions)})[TransitionKey.ACTION].numpy()
 
 
@@ -219,7 +219,9 @@ def relabel(cfg: RelabelConfig) -> dict:
         "relabel",
     )
     new_actions = actions.copy()
-    new_actions[pseudo] = policy.bin_centres.cpu().numpy()[bins]
+    new_actions[pseudo] = (
+        policy.bin_actions(torch.as_tensor(bins, device=policy.bin_centres.device)).cpu().numpy()
+    )
 
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)

@@ -156,6 +156,17 @@ def test_same_flags_give_same_episodes_with_any_worker_count(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_build_with_video_tasks_only_writes_the_repos_it_can(tmp_path, capsys):
+    flags = dict(demo_tasks=[], video_tasks=["reach-v3"], unseen_tasks=[], episodes_per_task=1)
+    flags.update(prompts_per_task=1, probe_episodes_per_task=0, image_size=48, num_workers=1)
+    summary = build(MetaworldBuildConfig(repo_id="test/vonly", root=str(tmp_path), **flags), SIM)
+    assert set(summary["repos"]) == {"video", "prompts"}
+    assert (tmp_path / "test/vonly_video/meta/info.json").is_file() and not (
+        tmp_path / "test/vonly_mix"
+    ).exists()
+    assert "jept-mix" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(
     "flags, message",
     [

@@ -1,6 +1,7 @@
 """The `jept` policy on a real tiny Meta-World build: losses, masking, EMA, phases, save/load, control cache."""
 
 import copy
+import sys
 
 import pytest
 import torch
@@ -558,3 +559,15 @@ def test_prompt_guidance_needs_a_null_prompt(tiny_build):
     cfg = tiny_config(prompt_dropout=0.2)
     PolicyArg("ckpt", prompt_guidance=2.0).apply(cfg)
     assert cfg.prompt_guidance == 2.0
+
+
+def test_optimizer_flags_are_refused_not_ignored(monkeypatch):
+    """LeRobot replaces --optimizer.* with the policy's preset: the preset refuses them, naming the fix."""
+    monkeypatch.setattr(sys, "argv", ["lerobot-train", "--policy.type=jept", "--optimizer.lr=1e-3"])
+    with pytest.raises(ValueError, match=r"--optimizer.lr would be ignored.*--policy.optimizer_lr_encoder"):
+        JEPTConfig().get_optimizer_preset()
+    monkeypatch.setattr(
+        sys, "argv", ["lerobot-train", "--policy.type=jept", "--policy.optimizer_lr_encoder=1e-3"]
+    )
+    preset = JEPTConfig(optimizer_lr_predictor=2e-4).get_optimizer_preset()
+    assert preset.lr == 2e-4
