@@ -19,6 +19,7 @@ from lerobot.optim.optimizers import AdamWConfig
 from lerobot.optim.schedulers import ConstantWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from lerobot_jept.components.backbone import is_temporal
 from lerobot_jept.envs.spec import ACTION_LABELLED
 from lerobot_jept.registration import register_processor_steps
 
@@ -376,8 +377,14 @@ class JEPTConfig(PreTrainedConfig):
         return ConstantWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
 
     @property
+    def image_keys(self) -> list[str]:
+        """The cameras, in a fixed order (each one's frames are tokenised together, tagged by camera)."""
+        return sorted(self.image_features)
+
+    @property
     def image_key(self) -> str:
-        return next(iter(self.image_features))
+        """The first camera (whose padding marks a window's padded frames)."""
+        return self.image_keys[0]
 
     def fit_action_range(self, dataset_stats: dict | None) -> None:
         """With ``action_range="dataset"``, each action dimension's range is its [min, max] over the training
@@ -429,10 +436,11 @@ class JEPTConfig(PreTrainedConfig):
                 "JEPT needs a camera image (an `observation.image*` feature) but the dataset has none: "
                 "build it with `jept-build-metaworld` or add an image feature."
             )
-        if len(self.image_features) > 1:
+        if len(self.image_features) > 1 and is_temporal(self.vision_backbone):
             raise ValueError(
-                f"JEPT uses one camera, the dataset has {sorted(self.image_features)}: keep one with "
-                "--rename_map or remove the others (lerobot.datasets.dataset_tools.remove_feature)."
+                f"--policy.vision_backbone={self.vision_backbone} pairs each frame with the one before it, which "
+                f"is defined for one camera; the dataset has {sorted(self.image_keys)}: keep one with "
+                "--rename_map or lerobot.datasets.dataset_tools.remove_feature, or choose a per-frame backbone."
             )
         if OBS_STATE not in self.input_features or self.input_features[OBS_STATE].type != FeatureType.STATE:
             raise ValueError(

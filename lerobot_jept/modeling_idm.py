@@ -62,7 +62,7 @@ class IDMPolicy(DiscreteActionPolicy):
 
     def action_logits(self, batch: dict[str, Tensor]) -> Tensor:
         """Logits (B, A, bins) of a_t of a preprocessed batch (two frames per sample)."""
-        return self.model(batch[self.config.image_key], batch[OBS_STATE])[:, 0]
+        return self.model(self.camera_frames(batch), batch[OBS_STATE])[:, 0]
 
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
         loss, labelled = self.action_loss(self.action_logits(batch)[:, None], batch)

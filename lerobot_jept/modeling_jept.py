@@ -314,7 +314,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         """(B, joint_dim): the joint embedding of the last context frame over its k-frame context, averaged over
         tokens."""
         m, k = self.model, self.config.n_obs_steps
-        images, state = batch[self.config.image_key][:, :k], batch[OBS_STATE][:, :k]
+        images, state = self.camera_frames(batch)[:, :k], batch[OBS_STATE][:, :k]
         obs = m.tokenize(m.encoder.tokenizer, m.backbone_tokens(images), state)
         return m.encoder.temporal.context_embeddings(obs, first=k - 1)[:, 0].mean(1)
 
@@ -322,7 +322,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         """A training-shaped window (k + 1 frames) -> backbone tokens, observation tokens and the predictor's
         joint embedding inputs h_2..h_{k+1} (each frame encoded over the frames up to it)."""
         m = self.model
-        tokens = m.backbone_tokens(batch[self.config.image_key])
+        tokens = m.backbone_tokens(self.camera_frames(batch))
         obs = m.tokenize(m.encoder.tokenizer, tokens, batch[OBS_STATE])
         return tokens, obs, m.encoder.temporal.context_embeddings(obs, first=1)
 
@@ -336,9 +336,9 @@ class JEPTPolicy(DiscreteActionPolicy):
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """(B, action_dim) bin-centre actions for the current observation."""
-        cfg, m = self.config, self.model
+        m = self.model
         prompt = self.episode_prompt(batch, self.prompt_active)
-        obs = self.context_tokens(batch[cfg.image_key], batch[OBS_STATE])  # (B, k, N, D)
+        obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
         return self.bin_actions(self._control_logits(prompt, obs, h_past, batch[OBS_STATE]).argmax(-1))
 

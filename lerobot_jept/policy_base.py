@@ -23,7 +23,7 @@ from lerobot_jept.components.perceiver import PerceiverIO
 from lerobot_jept.components.predictor import ActionHead
 from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
-from lerobot_jept.prompts import PromptBank, load_prompt_video, unit_float
+from lerobot_jept.prompts import PromptBank, load_prompt_video, resize_frames, unit_float
 
 PROMPT_VIDEO = "observation.prompt_video"
 PROMPT_MASK = "observation.prompt_video_mask"
@@ -84,7 +84,11 @@ def make_tokenizer(config: JEPTConfig, backbone_dim: int) -> ObservationTokenize
     """The single-timestep encoder: per-frame Perceiver-IO + self-state token (N_obs = queries + 1)."""
     state_dim = config.input_features[OBS_STATE].shape[0]
     return ObservationTokenizer(
-        backbone_dim, state_dim, perceiver=perceiver_kwargs(config, "frame"), dim=config.perceiver_dim
+        backbone_dim,
+        state_dim,
+        perceiver=perceiver_kwargs(config, "frame"),
+        dim=config.perceiver_dim,
+        num_cameras=len(config.image_keys),
     )
 
 
@@ -222,13 +226,15 @@ class VisualPolicyNet(nn.Module):
 
     @staticmethod
     def tokenize(tokenizer: ObservationTokenizer, tokens: Tensor, state: Tensor) -> Tensor:
-        """Backbone tokens (B, T, P, C) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
+        """Backbone tokens (B, T, P, C), or (B, T, K, P, C) of K cameras, + state (B, T, S) -> observation tokens
+        (B, T, N_obs, D)."""
         b = tokens.shape[0]
-        obs = tokenizer(rearrange(tokens, "b t p c -> (b t) p c"), rearrange(state, "b t s -> (b t) s"))
+        obs = tokenizer(rearrange(tokens, "b t ... c -> (b t) ... c"), rearrange(state, "b t s -> (b t) s"))
         return rearrange(obs, "(b t) n d -> b t n d", b=b)
 
     def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
-        """Frames (B, T, 3, H, W) + state (B, T, S) -> observation tokens (B, T, N_obs, D)."""
+        """Frames (B, T, 3, H, W), or (B, T, K, 3, H, W) of K cameras, + state (B, T, S) -> observation tokens
+        (B, T, N_obs, D)."""
         raise NotImplementedError
 
     def encode_prompt(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
@@ -303,6 +309,22 @@ class DiscreteActionPolicy(PreTrainedPolicy):
             raise cause from None
 
     # Training ---------------------------------------------------------------------------------------------
+
+    def camera_frames(self, batch: dict[str, Tensor]) -> Tensor:
+        """The frames the model sees: (..., 3, H, W) of the one camera, or (..., K, 3, H, W) of the config's
+        cameras in order, each at the model's resolution."""
+        keys = self.config.image_keys
+        if len(keys) == 1:
+            return batch[keys[0]]
+        frames = []
+        for key in keys:
+            x = batch[key]
+            if x.shape[-2:] != (self.config.image_size,) * 2:
+                x = resize_frames(unit_float(x).flatten(0, -4), self.config.image_size).view(
+                    *x.shape[:-2], self.config.image_size, self.config.image_size
+                )
+            frames.append(unit_float(x))
+        return torch.stack(frames, dim=-4)
 
     def bin_actions(self, indices: Tensor) -> Tensor:
         """(..., A) bin indices -> (..., A) actions at the bin centres (each dimension's own with per-dimension
@@ -444,7 +466,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
     def observation_embedding(self, batch: dict[str, Tensor]) -> Tensor:
         """(B, D): the observation tokens of the last context frame of a preprocessed training-shaped batch,
         averaged over tokens (what ``jept-visualize`` projects for the paper's Figure 3)."""
-        obs = self.model.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        obs = self.model.frame_tokens(self.camera_frames(batch), batch[OBS_STATE])
         return obs[:, self.config.n_obs_steps - 1].mean(1)
 
     # Control ----------------------------------------------------------------------------------------------
@@ -474,22 +496,22 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         """Observations from another env (e.g. the stock ``metaworld`` one) fail here with what differs."""
         cfg = self.config
         hint = (
-            "This checkpoint was trained on JEPT Meta-World data: evaluate it with --env.type=jept_metaworld "
-            "(the builder's observations), or give it observations of the shapes it was trained on."
+            "Give it observations like those it was trained on: for data of jept-build-metaworld, "
+            "--env.type=jept_metaworld; of jept-build-robosuite, --env.type=jept_robosuite; on a robot, the "
+            "cameras and joints its dataset was recorded with."
         )
-        for key in (cfg.image_key, OBS_STATE):
+        for key in (*cfg.image_keys, OBS_STATE):
             if key not in batch:
                 raise ValueError(f"The policy needs {key!r} but the observation has {sorted(batch)}. {hint}")
         expected, got = cfg.input_features[OBS_STATE].shape, tuple(batch[OBS_STATE].shape[1:])
         if tuple(expected) != got:
             raise ValueError(
-                f"The env gives observation.state of shape {got} but the policy was trained on {tuple(expected)} "
-                f"(the 18-D Sawyer self-state: joint angles, joint velocities, hand position, gripper). {hint}"
+                f"The observation gives observation.state of shape {got} but the policy was trained on "
+                f"{tuple(expected)}. {hint}"
             )
-        if batch[cfg.image_key].shape[1] != 3:
-            raise ValueError(
-                f"{cfg.image_key} must be (B, 3, H, W), got {tuple(batch[cfg.image_key].shape)}."
-            )
+        for key in cfg.image_keys:
+            if batch[key].shape[1] != 3:
+                raise ValueError(f"{key} must be (B, 3, H, W), got {tuple(batch[key].shape)}.")
 
     def context_tokens(self, image: Tensor, state: Tensor) -> Tensor:
         """Observation tokens of the last k frames (B, k, N, D); the first frame fills the context at the start
@@ -520,7 +542,7 @@ class ContextActionPolicy(DiscreteActionPolicy):
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
         """Behaviour cloning on the labelled frames, plus :meth:`auxiliary_losses` (per sample)."""
         m = self.model
-        obs = m.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])  # (B, k, N, D)
+        obs = m.frame_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D)
         prompt, aux, info = self.auxiliary_losses(batch, obs)
         loss_act, labelled = self.action_loss(m.action_logits(prompt, obs), batch)
         mean = self.labelled_mean(loss_act, labelled)
@@ -535,14 +557,14 @@ class ContextActionPolicy(DiscreteActionPolicy):
     def offline_outputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """``control``: logits (B, A, bins) of a_t for the last frame of a preprocessed training-shaped batch,
         as ``select_action`` chooses it."""
-        obs = self.model.frame_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        obs = self.model.frame_tokens(self.camera_frames(batch), batch[OBS_STATE])
         return {"control": self.model.action_logits(self.prompt(batch), obs)[:, -1]}
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """(B, action_dim) bin-centre actions for the current observation."""
         prompt = self.episode_prompt(batch)
-        obs = self.context_tokens(batch[self.config.image_key], batch[OBS_STATE])
+        obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])
         logits = self.model.action_logits(prompt, obs)[:, -1]
         return self.bin_actions(logits.argmax(-1))
 

@@ -83,7 +83,7 @@ def windows(repo_id: str, root: str | None, policy):
     from lerobot.utils.constants import OBS_STATE
 
     fps = LeRobotDatasetMetadata(repo_id, root=root).fps
-    keys = [policy.config.image_key, OBS_STATE]
+    keys = [*policy.config.image_keys, OBS_STATE]
     return LeRobotDataset(repo_id, root=root, delta_timestamps={k: [0.0, 1.0 / fps] for k in keys})
 
 

@@ -19,14 +19,22 @@ from lerobot_jept.components.perceiver import PerceiverIO
 
 
 class ObservationTokenizer(nn.Module):
-    """(B, 3, H, W) backbone tokens (B, N, C) + state (B, S) -> (B, N_q + 1, D)."""
+    """Backbone tokens (B, N, C) of one camera, or (B, K, N, C) of K cameras, + state (B, S) -> (B, N_q + 1, D).
 
-    def __init__(self, backbone_dim: int, state_dim: int, perceiver: dict, dim: int):
+    With several cameras, each camera's tokens get that camera's learned embedding and the Perceiver reads
+    them all at once, so one observation is N_q + 1 tokens whatever the number of cameras.
+    """
+
+    def __init__(self, backbone_dim: int, state_dim: int, perceiver: dict, dim: int, num_cameras: int = 1):
         super().__init__()
         self.perceiver = PerceiverIO(backbone_dim, dim=dim, **perceiver)
         self.state_mlp = nn.Sequential(nn.Linear(state_dim, dim), nn.GELU(), nn.Linear(dim, dim))
+        if num_cameras > 1:
+            self.camera_embedding = nn.Parameter(torch.randn(num_cameras, backbone_dim) * 0.02)
 
     def forward(self, backbone_tokens: Tensor, state: Tensor) -> Tensor:
+        if backbone_tokens.ndim == 4:  # (B, K, N, C): the cameras, each tagged
+            backbone_tokens = (backbone_tokens + self.camera_embedding[None, :, None]).flatten(1, 2)
         visual = self.perceiver(backbone_tokens)
         return torch.cat([visual, self.state_mlp(state)[:, None]], dim=1)
 
