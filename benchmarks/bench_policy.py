@@ -3,6 +3,8 @@
 - ``select_action_cached_speedup``: step time of ``select_action`` recomputing every context frame (backbone +
   Perceiver on all k frames) / step time with the per-frame token cache; the paper's architecture
   (vit_base_patch16_224 at 224 px, k = 8) with random weights, batch 1, same context. Goal >= 5.
+- ``select_action_vs_backbone``: the cached ``select_action`` step above / one backbone pass on the new frame
+  alone (same model, same run): what a control step costs beyond the one frame it must encode. Goal <= 1.1.
 - ``train_step_vs_act``: one training step (forward, backward, AdamW) of the small jept configuration / one of
   LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
   size. Goal <= 2.
@@ -53,7 +55,7 @@ def median_time(fn, repeats: int, warmup: int = 2) -> float:
     return statistics.median(step_times(fn, repeats, warmup))
 
 
-def select_action_speedup(repeats: int) -> tuple[float, float]:
+def select_action_speedup(repeats: int) -> tuple[float, float, float]:
     features = {
         "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 224, 224)),
         "observation.state": PolicyFeature(FeatureType.STATE, (18,)),
@@ -79,7 +81,10 @@ def select_action_speedup(repeats: int) -> tuple[float, float]:
         for _ in range(cfg.n_obs_steps):  # a full context, prompt encoded: the steady state of an episode
             policy.select_action(obs)
         times[cached] = median_time(lambda p=policy, o=obs: p.select_action(o), repeats, warmup=1)
-    return times[False] / times[True], times[True]
+    image = obs["observation.image"][:, None]
+    with torch.no_grad():
+        backbone_s = median_time(lambda p=policy: p.model.backbone_tokens(image), repeats, warmup=1)
+    return times[False] / times[True], times[True], backbone_s
 
 
 def tiny_build() -> str:
@@ -139,9 +144,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
 
-    speedup, cached_s = select_action_speedup(args.repeats)
+    speedup, cached_s, backbone_s = select_action_speedup(args.repeats)
     print(f"select_action_cached_s: {cached_s:.3f}")
     print(f"select_action_cached_speedup: {speedup:.2f}")
+    print(f"backbone_one_frame_s: {backbone_s:.3f}")
+    print(f"select_action_vs_backbone: {cached_s / backbone_s:.2f}")
 
     from lerobot.policies.act.configuration_act import ACTConfig
 

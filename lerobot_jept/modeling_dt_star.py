@@ -58,8 +58,8 @@ class DTStarPolicy(ContextActionPolicy):
         cfg, m = self.config, self.model
         return self.lr_groups(
             [
-                (cfg.optimizer_lr_encoder, self.encoder_modules()),
-                (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
-                (cfg.optimizer_lr_predictor, [m.transformer, m.action_head]),
+                ("encoder", cfg.optimizer_lr_encoder, self.encoder_modules()),
+                ("prompt", cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+                ("predictor", cfg.optimizer_lr_predictor, [m.transformer, m.action_head]),
             ]
         )

@@ -55,8 +55,8 @@ class IDMPolicy(DiscreteActionPolicy):
         cfg, m = self.config, self.model
         return self.lr_groups(
             [
-                (cfg.optimizer_lr_encoder, self.encoder_modules()),
-                (cfg.optimizer_lr_predictor, [m.inp, m.positions, m.transformer, m.action_head]),
+                ("encoder", cfg.optimizer_lr_encoder, self.encoder_modules()),
+                ("predictor", cfg.optimizer_lr_predictor, [m.inp, m.positions, m.transformer, m.action_head]),
             ]
         )
 
@@ -67,7 +67,11 @@ class IDMPolicy(DiscreteActionPolicy):
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
         loss, labelled = self.action_loss(self.action_logits(batch)[:, None], batch)
         mean = self.labelled_mean(loss, labelled)
-        info = {"loss_act": mean.item(), "labelled_fraction": labelled[..., 0].mean().item()}
+        info = {
+            "loss_act": mean.item(),
+            "labelled_fraction": labelled[..., 0].mean().item(),
+            **self.learning_rates(),
+        }
         return (loss if reduction == "none" else mean), info
 
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:

@@ -169,9 +169,13 @@ class JEPTPolicy(DiscreteActionPolicy):
         cfg, m = self.config, self.model
         return self.lr_groups(
             [
-                (cfg.optimizer_lr_encoder, [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone])),
-                (cfg.optimizer_lr_prompt, m.prompt_modules()),
-                (cfg.optimizer_lr_predictor, m.heads()),
+                (
+                    "encoder",
+                    cfg.optimizer_lr_encoder,
+                    [m.encoder] + ([] if cfg.freeze_backbone else [m.backbone]),
+                ),
+                ("prompt", cfg.optimizer_lr_prompt, m.prompt_modules()),
+                ("predictor", cfg.optimizer_lr_predictor, m.heads()),
             ]
         )
 
@@ -228,6 +232,7 @@ class JEPTPolicy(DiscreteActionPolicy):
             "phase_encoder": float(self.phase == "encoder"),
             "prompt_on": float(prompt is not None),
             **extra_info,
+            **self.learning_rates(),
         }
         if reduction == "none":
             return per_sample, info

@@ -117,9 +117,13 @@ class Vid2RobotPolicy(ContextActionPolicy):
         cfg, m = self.config, self.model
         return self.lr_groups(
             [
-                (cfg.optimizer_lr_encoder, self.encoder_modules()),  # the Perceiver shared with the prompt
-                (cfg.optimizer_lr_prompt, [m.prompt_encoder]),
-                (cfg.optimizer_lr_predictor, [m.transformer, m.action_head, m.contrastive]),
+                (
+                    "encoder",
+                    cfg.optimizer_lr_encoder,
+                    self.encoder_modules(),
+                ),  # the Perceiver shared with the prompt
+                ("prompt", cfg.optimizer_lr_prompt, [m.prompt_encoder]),
+                ("predictor", cfg.optimizer_lr_predictor, [m.transformer, m.action_head, m.contrastive]),
             ]
         )
 

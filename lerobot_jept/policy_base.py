@@ -336,16 +336,29 @@ class DiscreteActionPolicy(PreTrainedPolicy):
             ..., 0
         ]
 
-    def lr_groups(self, groups: list[tuple[float, list[nn.Module]]]) -> list[dict]:
-        """AdamW parameter groups ``[(lr, modules), ...]`` of the trainable parameters; a parameter shared by two
-        modules (Vid2Robot's one Perceiver) goes to the first group that names it."""
+    def lr_groups(self, groups: list[tuple[str, float, list[nn.Module]]]) -> list[dict]:
+        """AdamW parameter groups ``[(name, lr, modules), ...]`` of the trainable parameters; a parameter shared
+        by two modules (Vid2Robot's one Perceiver) goes to the first group that names it. The groups' rates are
+        logged by name (:meth:`learning_rates`)."""
         seen: set[int] = set()
         out = []
-        for lr, modules in groups:
+        for name, lr, modules in groups:
             params = [p for m in modules for p in m.parameters() if p.requires_grad and id(p) not in seen]
             seen.update(id(p) for p in params)
-            out.append({"params": params, "lr": lr})
+            out.append({"params": params, "lr": lr, "name": name})
+        self.__dict__["_group_rates"] = {name: lr for name, lr, _ in groups}
         return out
+
+    def learning_rates(self) -> dict[str, float]:
+        """``lr_<group>``: each parameter group's rate at this training step, under the policy's scheduler
+        preset (linear warm-up over ``scheduler_warmup_steps``, then constant); LeRobot's own ``lr`` is the first
+        group's. Empty unless LeRobot trains with the policy's groups (``use_policy_training_preset``)."""
+        rates = self.__dict__.get("_group_rates")
+        if not rates or not self.training:
+            return {}
+        warmup, step = self.config.scheduler_warmup_steps, int(self.num_updates)
+        factor = step / warmup if step < warmup else 1.0
+        return {f"lr_{name}": lr * factor for name, lr in rates.items()}
 
     def encoder_modules(self) -> list[nn.Module]:
         """The single-frame tokenizer, with the backbone when it is trained (the ``optimizer_lr_encoder`` group
@@ -546,7 +559,12 @@ class ContextActionPolicy(DiscreteActionPolicy):
         prompt, aux, info = self.auxiliary_losses(batch, obs)
         loss_act, labelled = self.action_loss(m.action_logits(prompt, obs), batch)
         mean = self.labelled_mean(loss_act, labelled)
-        info = {"loss_act": mean.item(), "labelled_fraction": labelled[..., 0].mean().item(), **info}
+        info = {
+            "loss_act": mean.item(),
+            "labelled_fraction": labelled[..., 0].mean().item(),
+            **info,
+            **self.learning_rates(),
+        }
         return (loss_act + aux if reduction == "none" else mean + aux.mean()), info
 
     def auxiliary_losses(self, batch: dict[str, Tensor], obs: Tensor) -> tuple[Tensor, Tensor, dict]:

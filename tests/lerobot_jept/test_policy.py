@@ -571,3 +571,25 @@ def test_optimizer_flags_are_refused_not_ignored(monkeypatch):
     )
     preset = JEPTConfig(optimizer_lr_predictor=2e-4).get_optimizer_preset()
     assert preset.lr == 2e-4
+
+
+def test_logged_learning_rates_name_their_groups_and_follow_the_optimizer(tiny_build):
+    """``lr_<group>`` in the training log equals the rate LeRobot's optimizer and scheduler (the presets) apply
+    to that group at that step, warm-up included."""
+    policy, pre, _ = build_policy(tiny_build, scheduler_warmup_steps=3)
+    cfg = policy.config
+    optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
+    scheduler = cfg.get_scheduler_preset().build(optimizer, 100)
+    assert [g["name"] for g in optimizer.param_groups] == ["encoder", "prompt", "predictor"]
+    batch = pre(mixed_batch(cfg, size=2))
+    policy.train()
+    for _ in range(5):
+        loss, info = policy.forward(batch)
+        for group in optimizer.param_groups:
+            assert info[f"lr_{group['name']}"] == pytest.approx(group["lr"])
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad()
+        scheduler.step()
+        policy.update()
+    assert info["lr_encoder"] == pytest.approx(cfg.optimizer_lr_encoder)  # past the warm-up
