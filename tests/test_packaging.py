@@ -15,10 +15,12 @@ UV = shutil.which("uv") or str(Path.home() / ".local/bin/uv")
 SIMULATORS = ("metaworld", "robosuite", "mujoco", "mink")
 
 
+BASE_PYTHON = Path(sys.base_prefix) / "bin" / f"python{sys.version_info.major}.{sys.version_info.minor}"
+
+
 def run(args: list, cwd: Path) -> subprocess.CompletedProcess:
-    proc = subprocess.run(
-        [str(a) for a in args], cwd=cwd, capture_output=True, text=True, env=os.environ.copy()
-    )
+    env = {**os.environ, "UV_PYTHON_DOWNLOADS": "never"}
+    proc = subprocess.run([str(a) for a in args], cwd=cwd, capture_output=True, text=True, env=env)
     assert proc.returncode == 0, f"{args[:3]} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
     return proc
 
@@ -36,11 +38,24 @@ def test_plugin_import_loads_no_simulator_and_prints_nothing(tmp_path):
 
 @pytest.mark.slow
 def test_wheel_installs_into_a_plain_lerobot_env_and_trains(tiny_build, tmp_path):
-    run([UV, "build", "--no-config", "--wheel", "--out-dir", tmp_path / "dist", ROOT], tmp_path)
+    run(
+        [
+            UV,
+            "build",
+            "--no-config",
+            "--python",
+            BASE_PYTHON,
+            "--wheel",
+            "--out-dir",
+            tmp_path / "dist",
+            ROOT,
+        ],
+        tmp_path,
+    )
     (wheel,) = (tmp_path / "dist").glob("lerobot_policy_jept-*.whl")
     venv = tmp_path / "venv"
     python, bin_dir = venv / "bin/python", venv / "bin"
-    run([UV, "venv", "--no-config", "--python", "3.12", venv], tmp_path)
+    run([UV, "venv", "--no-config", "--python", BASE_PYTHON, venv], tmp_path)
     run([UV, "pip", "install", "--no-config", "--python", python, "lerobot==0.6.1"], tmp_path)
     run([UV, "pip", "install", "--no-config", "--python", python, wheel], tmp_path)
     # the simulators are extras, and they resolve with LeRobot's numpy too
