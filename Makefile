@@ -34,7 +34,7 @@ $(UV):
 $(VENV)/.synced: pyproject.toml uv.lock | $(UV)
 	@$(UV) python find $(PYTHON_VERSION) >/dev/null 2>&1 || { \
 		echo "Python $(PYTHON_VERSION) not found: install it (e.g. 'pyenv install $(PYTHON_VERSION)') and retry."; exit 1; }
-	$(UV) sync --frozen --extra sim --extra dev --extra cluster --extra priors --python $(PYTHON_VERSION)
+	$(UV) sync --frozen --extra sim --group robosuite --extra dev --extra cluster --extra priors --python $(PYTHON_VERSION)
 	@touch $@
 
 setup: system-deps $(VENV)/.synced

@@ -23,6 +23,7 @@ from lerobot_jept.components.perceiver import PerceiverIO
 from lerobot_jept.components.predictor import ActionHead
 from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
+from lerobot_jept.envs.rendering import INSTALL
 from lerobot_jept.prompts import PromptBank, load_prompt_video, resize_frames, unit_float
 
 PROMPT_VIDEO = "observation.prompt_video"
@@ -618,7 +619,7 @@ def card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) ->
         size = protocol.get("image_size", config.image_size)
         task = (split.get("unseen") or split.get("demo") or [None])[0]
         lines += [
-            f"pip install 'lerobot_policy_jept[{protocol['simulator']}]'",
+            INSTALL[protocol["simulator"]],
             f"lerobot-eval --policy.path={repo} --env.type=jept_{protocol['simulator']} --env.task={task} "
             f"--env.image_size={size} --env.prompt_repo_id={config.prompt_repo_id} "
             f"--env.prompt_max_frames={config.max_prompt_length} --eval.n_episodes=50",

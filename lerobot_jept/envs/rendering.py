@@ -47,15 +47,20 @@ def setup_offscreen_gl(default: str = "egl") -> str:
     return backend
 
 
+# How each simulator is installed next to LeRobot (robosuite 1.5.2's mink requirement needs numpy < 2).
+INSTALL = {
+    "metaworld": "pip install 'lerobot_policy_jept[metaworld]'",
+    "robosuite": "pip install 'lerobot_policy_jept[robosuite]' && pip install --no-deps robosuite==1.5.2",
+}
+
+
 def import_simulator(module: str, extra: str):
-    """Import ``module`` of a simulator, or fail naming the package extra that installs it."""
+    """Import ``module`` of a simulator, or fail naming the commands that install it."""
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
         if e.name is None or e.name.split(".")[0] != module.split(".")[0]:
             raise
         raise ModuleNotFoundError(
-            f"{module} is not installed; the {extra} envs and builders need it: "
-            f"pip install 'lerobot_policy_jept[{extra}]'",
-            name=e.name,
+            f"{module} is not installed; the {extra} envs and builders need it: {INSTALL[extra]}", name=e.name
         ) from e
