@@ -356,7 +356,7 @@ class JEPTConfig(PreTrainedConfig):
 
     def get_optimizer_preset(self) -> AdamWConfig:
         """AdamW with one learning rate per parameter group (the policy's ``get_optim_params``). LeRobot
-        replaces any ``--optimizer.*`` flag with this preset, so such a flag is refused here, not ignored."""
+        replaces any ``--optimizer.*`` flag with this preset, so such a flag is refused, not ignored."""
         given = sorted({arg.split("=")[0] for arg in sys.argv[1:] if arg.startswith("--optimizer.")})
         if given:
             raise ValueError(

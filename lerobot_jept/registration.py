@@ -96,8 +96,8 @@ def register_policies() -> None:
         elif known[alias] is not cls:
             warnings.warn(
                 f"Another package registers the policy type {alias!r}, so it is not an alias of "
-                f'{name!r} here: use --policy.type={name} (and "type": "{name}" in an older checkpoint\'s '
-                "config.json).",
+                f'{name!r} in this environment: use --policy.type={name} (and "type": "{name}" in an older '
+                "checkpoint's config.json).",
                 stacklevel=2,
             )
 

@@ -82,3 +82,22 @@ def test_wheel_installs_into_a_plain_lerobot_env_and_trains(tiny_build, tmp_path
         tmp_path,
     )
     assert (out / "checkpoints/last/pretrained_model/model.safetensors").is_file()
+
+
+def test_a_policy_type_taken_by_another_package_does_not_take_the_plugin_down(tmp_path):
+    """Another package owning ``idm`` keeps it; the plugin still registers every ``jept_*`` type and says which
+    name to use."""
+    code = (
+        "from dataclasses import dataclass\n"
+        "from lerobot.configs.policies import PreTrainedConfig\n"
+        "@PreTrainedConfig.register_subclass('idm')\n"
+        "@dataclass\n"
+        "class OtherIDMConfig(PreTrainedConfig):\n"
+        "    pass\n"
+        "import lerobot_policy_jept\n"
+        "known = PreTrainedConfig.get_known_choices()\n"
+        "assert known['idm'] is OtherIDMConfig, known['idm']\n"
+        "assert {'jept', 'jept_idm', 'jept_dt_star', 'jept_vid2robot', 'dt_star', 'vid2robot'} <= set(known)\n"
+    )
+    proc = run([sys.executable, "-W", "always", "-c", code], tmp_path)
+    assert "--policy.type=jept_idm" in proc.stderr
