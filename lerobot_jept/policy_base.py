@@ -317,14 +317,13 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         keys = self.config.image_keys
         if len(keys) == 1:
             return batch[keys[0]]
-        frames = []
-        for key in keys:
-            x = batch[key]
-            if x.shape[-2:] != (self.config.image_size,) * 2:
-                x = resize_frames(unit_float(x).flatten(0, -4), self.config.image_size).view(
-                    *x.shape[:-2], self.config.image_size, self.config.image_size
-                )
-            frames.append(unit_float(x))
+        size = self.config.image_size
+        frames = [
+            resize_frames(unit_float(batch[key]).flatten(0, -4), size).view(
+                *batch[key].shape[:-2], size, size
+            )
+            for key in keys
+        ]
         return torch.stack(frames, dim=-4)
 
     def bin_actions(self, indices: Tensor) -> Tensor:
