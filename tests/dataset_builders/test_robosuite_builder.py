@@ -195,7 +195,8 @@ def test_train_and_eval_end_to_end(rs_build, tmp_path, policy_type):
         proc = subprocess.run([str(bin_dir / cmd[0]), *cmd[1:]], capture_output=True, text=True, cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-4000:]
     model = tmp_path / "train/checkpoints/last/pretrained_model"
-    assert json.loads((model / "config.json").read_text())["type"] == policy_type
+    saved_type = policy_type if policy_type == "jept" else f"jept_{policy_type}"  # the config files' type
+    assert json.loads((model / "config.json").read_text())["type"] == saved_type
     if policy_type != "jept":
         return
     info = json.loads((tmp_path / "eval/eval_info.json").read_text())

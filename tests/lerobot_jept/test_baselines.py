@@ -293,7 +293,7 @@ def train(tmp, policy_type: str, repo: str, steps: int = 2, *extra: str):
 @pytest.mark.parametrize("policy_type", ["dt_star", "vid2robot"])
 def test_baseline_trains_and_evaluates_with_lerobot(tiny_build, tmp_path, policy_type):
     model, log = train(tmp_path, policy_type, MIX)
-    assert json.loads((model / "config.json").read_text())["type"] == policy_type
+    assert json.loads((model / "config.json").read_text())["type"] == f"jept_{policy_type}"
     assert "loss_act:" in log and "loss_obs" not in log
     assert lerobot_eval(model, tmp_path / "eval", tmp_path)["overall"]["n_episodes"] == 1
     run(
@@ -308,10 +308,10 @@ def test_baseline_trains_and_evaluates_with_lerobot(tiny_build, tmp_path, policy
         tmp_path,
     )
     results = json.loads((tmp_path / "suite/results.json").read_text())
-    assert results["policy_type"] == policy_type
+    assert results["policy_type"] == f"jept_{policy_type}"
     assert all(len(r["successes"]) == 2 for r in results["per_task"].values())
     probe = results["prompt_probe"]  # the baselines' offline measures: control only (no inverse, no L_obs)
-    assert probe["policy_type"] == policy_type and set(probe["splits"]) == {"T_demo", "T_vid", "T_unseen"}
+    assert probe["policy_type"] == f"jept_{policy_type}" and set(probe["splits"]) == {"T_demo", "T_vid", "T_unseen"}
     assert all("control_whole" in r and "inverse_whole" not in r for r in probe["actions"].values())
 
 
