@@ -8,7 +8,16 @@ import shutil
 from collections import defaultdict
 from pathlib import Path
 
-from dataset_builders.config import BUILD_FILE, LABELLED_ROLES, ROLES, BuildConfig, BuildError, Simulator
+from dataset_builders.config import (
+    BUILD_FILE,
+    LABELLED_ROLES,
+    ROLES,
+    BuildConfig,
+    BuildError,
+    Simulator,
+    is_play,
+    task_description,
+)
 from dataset_builders.plan import BuildPaths, Shard
 from lerobot_jept.mixing import MIX_FORMAT
 
@@ -54,12 +63,12 @@ def _aggregate(sources: list[tuple[str, Path]], repo_id: str, out: Path) -> None
     )
 
 
-def build_mix(paths: BuildPaths, action_feature: dict, has_demo: bool, has_video: bool) -> None:
-    """``_mix`` = the ``_demo`` episodes + the ``_video`` episodes with the neutral action, unlabelled
-    (``lerobot_jept.mixing``)."""
+def build_mix(paths: BuildPaths, action_feature: dict, has_video: bool, has_play: bool) -> None:
+    """``_mix`` = the ``_demo`` (and ``_play``) episodes + the ``_video`` episodes with the neutral action,
+    unlabelled (``lerobot_jept.mixing``)."""
     from lerobot_jept.mixing import mix
 
-    demos = [(paths.repo_id_of("demo"), paths.repo("demo"))] if has_demo else []
+    demos = [(paths.repo_id_of(role), paths.repo(role)) for role in ("demo", "play")[: 1 + has_play]]
     videos = [(paths.repo_id_of("video"), paths.repo("video"))] if has_video else []
     staging = paths.work / "staging" / "mixing"
     try:
@@ -95,7 +104,7 @@ def assemble(cfg: BuildConfig, sim: Simulator, paths: BuildPaths, record: dict, 
         _replace_dir(tmp, paths.repo(role))
         assembled[role] = names
         assembled.pop("mix", None)
-    mix_names = [s.name for s in shards if s.role in ("demo", "video")]
+    mix_names = [s.name for s in shards if s.role in ("demo", "video", "play")]
     if not cfg.demo_tasks:  # no labelled frame: the videos join demos of another build through jept-mix
         print(
             f"No demo tasks, so no {paths.repo_id_of('mix')} (a mix needs labelled frames): mix "
@@ -103,7 +112,7 @@ def assemble(cfg: BuildConfig, sim: Simulator, paths: BuildPaths, record: dict, 
             f"--video_repo_ids=[{paths.repo_id_of('video')}] --output_repo_id=...`."
         )
     elif assembled.get("mix") != mix_names or not paths.repo("mix").exists():
-        build_mix(paths, sim.action_feature(), bool(cfg.demo_tasks), bool(cfg.video_tasks))
+        build_mix(paths, sim.action_feature(), bool(cfg.video_tasks), bool(cfg.play_tasks()))
         assembled["mix"] = mix_names
     record["assembled"] = assembled
 
@@ -111,10 +120,16 @@ def assemble(cfg: BuildConfig, sim: Simulator, paths: BuildPaths, record: dict, 
     metadata = {
         "repo_id": cfg.repo_id,
         "split": cfg.split(),
-        "task_descriptions": {t: sim.task_description(t) for tasks in cfg.split().values() for t in tasks},
+        "play_tasks": cfg.play_tasks(),  # labelled, in the mix, in no split
+        "task_descriptions": {
+            t: task_description(sim, t)
+            for t in (*(t for ts in cfg.split().values() for t in ts), *cfg.play_tasks())
+        },
         "protocol": sim.protocol(cfg),
         "repos": {role: paths.repo_id_of(role) for role in (*ROLES, "mix") if paths.repo(role).exists()},
-        "expert_success_rate": {task: s["episodes"] / s["attempts"] for task, s in stats["per_task"].items()},
+        "expert_success_rate": {
+            task: s["episodes"] / s["attempts"] for task, s in stats["per_task"].items() if not is_play(task)
+        },
         "flags": cfg.content_flags(),
     }
     for role in metadata["repos"]:
@@ -123,7 +138,8 @@ def assemble(cfg: BuildConfig, sim: Simulator, paths: BuildPaths, record: dict, 
     (paths.work / BUILD_FILE).write_text(json.dumps(record, indent=2))
     per_role = stats["per_role"]
     per_role["mix"] = {
-        key: per_role["demo"][key] + per_role["video"][key] for key in ("episodes", "frames", "attempts")
+        key: sum(per_role[role][key] for role in ("demo", "video", "play"))
+        for key in ("episodes", "frames", "attempts")
     }
     return {"metadata": metadata, "per_role": per_role}
 

@@ -4,17 +4,28 @@ the checks that reject bad flags before any work starts."""
 import abc
 from dataclasses import dataclass, field
 
-ROLES = ("demo", "video", "prompts", "probe")
-LABELLED_ROLES = ("demo", "probe")  # recorded with the executed action
+ROLES = ("demo", "video", "play", "prompts", "probe")
+LABELLED_ROLES = ("demo", "play", "probe")  # recorded with the executed action
+# Play: labelled episodes of no task in the scene of a demo or video task (``play:<task>``), where a random bin
+# action is held for a random number of steps (kept with PLAY_HOLD_PROB each step), so inverse dynamics fitted
+# on the labelled frames sees motions the demo tasks' experts never make.
+PLAY_PREFIX = "play:"
+PLAY_HOLD_PROB = 0.8
 SPLITS = ("demo", "video", "unseen")
 BUILD_FILE = "jept_build.json"  # written in <work dir>/ and in every repo's meta/
 # Episode seeds: each (role, shard) owns a disjoint block of SEED_BLOCK seeds, so training episodes and
 # prompt videos and probe episodes never share a seed, and all stay clear of lerobot-eval's default seeds (1000 + episode).
 SEED_BLOCK = 10_000
-ROLE_SEED_BASE = {"demo": 10_000_000, "video": 10_000_000, "prompts": 20_000_000, "probe": 30_000_000}
+ROLE_SEED_BASE = {
+    "demo": 10_000_000,
+    "video": 10_000_000,
+    "prompts": 20_000_000,
+    "probe": 30_000_000,
+    "play": 40_000_000,
+}
 # Flags added after builds were made, with the value a build recorded without one had: None = the value given
 # now (its shards are recorded on top of the existing ones, so an older build resumes with today's defaults).
-ADDED_FLAGS = {"probe_episodes_per_task": None, "expert_random_prob": 0.0}
+ADDED_FLAGS = {"probe_episodes_per_task": None, "expert_random_prob": 0.0, "play_episodes_per_task": 0}
 # Flags that change what is written; a repo built with other values is never mixed with new episodes.
 CONTENT_FLAGS = (
     "demo_tasks",
@@ -23,6 +34,7 @@ CONTENT_FLAGS = (
     "episodes_per_task",
     "prompts_per_task",
     "probe_episodes_per_task",
+    "play_episodes_per_task",
     "image_size",
     "seed",
     "action_bins",
@@ -35,6 +47,26 @@ CONTENT_FLAGS = (
 
 
 EXECUTORS = ("local", "datatrove_local", "slurm")
+
+
+def play_task(task: str) -> str:
+    return PLAY_PREFIX + task
+
+
+def scene_task(task: str) -> str:
+    """The simulator task whose scene ``task`` (a task or a play pseudo-task) runs in."""
+    return task.removeprefix(PLAY_PREFIX)
+
+
+def is_play(task: str) -> bool:
+    return task.startswith(PLAY_PREFIX)
+
+
+def task_description(sim: "Simulator", task: str) -> str:
+    """The task string written to the datasets (a play pseudo-task's says so)."""
+    if is_play(task):
+        return f"Play in the scene of: {sim.task_description(scene_task(task))}"
+    return sim.task_description(task)
 
 
 @dataclass
@@ -65,6 +97,10 @@ class BuildConfig:
         prompts_per_task: prompt videos per task (all three splits), seeds disjoint from training episodes.
         probe_episodes_per_task: held-out labelled episodes per task (all three splits) in ``<repo_id>_probe``,
             seeds disjoint from every other role; 0 for none.
+        play_episodes_per_task: labelled play episodes per demo and video task in ``<repo_id>_play`` (task
+            ``play:<task>``: that task's scene, random bin actions each held for a few steps, no expert), with
+            ``prompts_per_task`` play prompts each; they join the mix as labelled frames, so inverse dynamics
+            covers motions the video-only tasks show and no demo makes. 0 for none.
         image_size: side of the square camera image.
         seed: base seed; the same flags and seed give the same episodes.
         num_workers: parallel rollout processes (one simulator env per process).
@@ -97,6 +133,7 @@ class BuildConfig:
     episodes_per_task: int = 500
     prompts_per_task: int = 10
     probe_episodes_per_task: int = 4
+    play_episodes_per_task: int = 0
     image_size: int = 224
     seed: int = 0
     num_workers: int = 1
@@ -120,6 +157,12 @@ class BuildConfig:
             "video": list(self.video_tasks),
             "unseen": list(self.unseen_tasks),
         }
+
+    def play_tasks(self) -> list[str]:
+        """The play pseudo-tasks: one per demo and video task's scene, when play episodes are asked for."""
+        if not self.play_episodes_per_task:
+            return []
+        return [play_task(t) for t in (*self.demo_tasks, *self.video_tasks)]
 
     def content_flags(self) -> dict:
         return {name: getattr(self, name) for name in CONTENT_FLAGS}
@@ -177,8 +220,9 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
     for name in ("episodes_per_task", "prompts_per_task", "image_size", "num_workers", "episodes_per_shard"):
         if getattr(cfg, name) < 1:
             raise BuildError(f"--{name} must be at least 1, got {getattr(cfg, name)}.")
-    if cfg.probe_episodes_per_task < 0:
-        raise BuildError(f"--probe_episodes_per_task must be 0 or more, got {cfg.probe_episodes_per_task}.")
+    for name in ("probe_episodes_per_task", "play_episodes_per_task"):
+        if getattr(cfg, name) < 0:
+            raise BuildError(f"--{name} must be 0 or more, got {getattr(cfg, name)}.")
     if cfg.executor not in EXECUTORS:
         raise BuildError(f"--executor must be one of {', '.join(EXECUTORS)}, got {cfg.executor!r}.")
     if cfg.tasks is not None and cfg.tasks < 1:

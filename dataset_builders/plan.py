@@ -41,9 +41,10 @@ def plan_shards(cfg: BuildConfig) -> list[Shard]:
     jobs = [
         ("demo", cfg.demo_tasks, cfg.episodes_per_task),
         ("video", cfg.video_tasks, cfg.episodes_per_task),
+        ("play", cfg.play_tasks(), cfg.play_episodes_per_task),
     ]
     all_tasks = [*cfg.demo_tasks, *cfg.video_tasks, *cfg.unseen_tasks]
-    jobs.append(("prompts", all_tasks, cfg.prompts_per_task))
+    jobs.append(("prompts", [*all_tasks, *cfg.play_tasks()], cfg.prompts_per_task))
     jobs.append(("probe", all_tasks, cfg.probe_episodes_per_task))
     shards = []
     for role, tasks, per_task in jobs:

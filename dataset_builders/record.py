@@ -21,7 +21,16 @@ from dataclasses import asdict
 
 import numpy as np
 
-from dataset_builders.config import LABELLED_ROLES, BuildConfig, BuildError, Simulator
+from dataset_builders.config import (
+    LABELLED_ROLES,
+    PLAY_HOLD_PROB,
+    BuildConfig,
+    BuildError,
+    Simulator,
+    is_play,
+    scene_task,
+    task_description,
+)
 from dataset_builders.plan import BuildPaths, Shard
 from lerobot_jept.discretization import bin_centres, snap_to_bins
 
@@ -32,10 +41,10 @@ _ENV_CACHE: dict = {}  # one live env per process: (simulator name, task, flags)
 
 
 def _env_for(sim: Simulator, task: str, cfg: BuildConfig, role: str):
-    key = (sim.name, task, role, cfg.image_size, cfg.action_repeat, cfg.max_episode_steps)
+    key = (sim.name, scene_task(task), role, cfg.image_size, cfg.action_repeat, cfg.max_episode_steps)
     if key not in _ENV_CACHE:
         close_envs()
-        _ENV_CACHE[key] = sim.make_env(task, cfg, role)
+        _ENV_CACHE[key] = sim.make_env(scene_task(task), cfg, role)
     return _ENV_CACHE[key]
 
 
@@ -70,6 +79,28 @@ def rollout_expert(env, seed: int, action_bins: int, random_prob: float = 0.0) -
             return frames, bool(info["is_success"])
 
 
+def rollout_play(
+    env, seed: int, action_bins: int, hold_prob: float = PLAY_HOLD_PROB
+) -> tuple[list[dict], bool]:
+    """One play episode in ``env``'s scene, as :func:`rollout_expert` records it but without an expert: a
+    uniformly random bin action, kept at each step with probability ``hold_prob`` (else drawn again), until the
+    episode ends. Every play episode is kept (there is no task to succeed at)."""
+    low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
+    centres = bin_centres(action_bins, low, high).astype(np.float32)
+    rng = np.random.default_rng([seed, RANDOM_ACTION_STREAM])
+    obs, _ = env.reset(seed=seed)
+    frames, action = [], None
+    while True:
+        if action is None or rng.random() >= hold_prob:
+            action = centres[rng.integers(action_bins, size=env.action_space.shape)]
+        frames.append(
+            {"observation.image": obs["pixels"], "observation.state": obs["agent_pos"], "action": action}
+        )
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            return frames, True
+
+
 def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> dict:
     """Record ``shard`` into its own finalised LeRobotDataset; returns its summary.
 
@@ -97,7 +128,7 @@ def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> di
         rgb_encoder=encoder_config(cfg.vcodec),
         encoder_threads=1,
     )
-    description = sim.task_description(shard.task)
+    description = task_description(sim, shard.task)
     renderer = _renderer()
     kept, attempt, submitted, frames_total, seeds = 0, 0, 0, 0, []
     max_attempts = 20 * shard.num_episodes + 20
@@ -224,7 +255,10 @@ def _render_loop(conn) -> None:
             sim, cfg, task, role, seed = request
             try:
                 env = _env_for(sim, task, cfg, role)
-                result = (True, rollout_expert(env, seed, cfg.action_bins, cfg.expert_random_prob))
+                if is_play(task):
+                    result = (True, rollout_play(env, seed, cfg.action_bins))
+                else:
+                    result = (True, rollout_expert(env, seed, cfg.action_bins, cfg.expert_random_prob))
             except Exception as err:  # handed to the parent, which raises it
                 result = (False, err)
             outbox.put(result)

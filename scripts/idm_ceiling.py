@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from lerobot_jept.discretization import to_bin_indices
 from lerobot_jept.prompt_probe import task_names
+from lerobot_jept.screen import load_frames, score, state_ceiling
 
 
 @dataclass
@@ -48,61 +48,6 @@ class CeilingConfig:
     epochs: int = 20  # CNN training epochs (pixels)
     num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
     seed: int = 0
-
-
-def load_frames(
-    repo_id: str, root: Path | None, steps: int, num_bins: int, features: str = "state"
-) -> dict[str, np.ndarray]:
-    """Every frame t with ``steps`` frames after it in its episode: state changes (or, for ``pixels``, the
-    uint8 frames o_t .. o_t+steps stacked on the channels), binned action, task (the builder's task name where
-    the repo has build metadata, else the task string)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
-    for key, fix in (
-        ("action", "pass labelled repos (a build's `_demo` and `_probe`), not `_video`"),
-        ("observation.state", "the ceiling is fitted on the self-state; rebuild with it recorded"),
-    ):
-        if key not in dataset.meta.features:
-            raise ValueError(f"{repo_id} has no `{key}` column: {fix}.")
-    names = task_names(dataset.meta) or {}
-    tasks = dataset.meta.tasks
-    task_of = {int(i): names.get(t, t) for t, i in zip(tasks.index, tasks["task_index"], strict=True)}
-    table = dataset.hf_dataset.with_format("numpy")
-    episode = table["episode_index"]
-    state, action, task_index = table["observation.state"], table["action"], table["task_index"]
-    image_key = next((k for k, f in dataset.meta.features.items() if f["dtype"] in ("video", "image")), None)
-    if features == "pixels" and image_key is None:
-        raise ValueError(f"{repo_id} has no camera frames: use --features=state.")
-    inputs, labels, frame_tasks = [], [], []
-    for ep in tqdm(np.unique(episode), desc=f"{repo_id} episodes", unit="ep", leave=False):
-        rows = np.flatnonzero(episode == ep)
-        starts = range(len(rows) - steps)
-        if features == "pixels":
-            images = np.stack([(dataset[int(r)][image_key].numpy() * 255).round() for r in rows]).astype(
-                np.uint8
-            )
-            inputs += [images[t : t + steps + 1].reshape(-1, *images.shape[2:]) for t in starts]
-        else:
-            delta = np.diff(state[rows], axis=0)
-            inputs += [delta[t : t + steps].reshape(-1) for t in starts]
-        for t in starts:
-            labels.append(to_bin_indices(action[rows[t]], num_bins))
-            frame_tasks.append(task_of[int(task_index[rows[t]])])
-    return {"x": np.array(inputs), "y": np.array(labels), "task": np.array(frame_tasks)}
-
-
-def fit_per_dimension(make_model, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray) -> np.ndarray:
-    """(N_test, D) bin predicted per action dimension by a fresh ``make_model()`` classifier fitted on that
-    dimension; a dimension with one bin in the training labels is predicted as that bin."""
-    predicted = np.zeros((len(x_test), y_train.shape[1]), dtype=y_train.dtype)
-    for d in range(y_train.shape[1]):
-        y = y_train[:, d]
-        if len(set(y)) == 1:  # a dimension the demos never move (the gripper of some tasks)
-            predicted[:, d] = y[0]
-            continue
-        predicted[:, d] = make_model().fit(x_train, y).predict(x_test)
-    return predicted
 
 
 def fit_cnn(
@@ -157,34 +102,8 @@ def ceiling(
     """Per probe task: frames, share of frames whose whole action is in the demos' support, accuracies of the
     inverse dynamics fitted on the demos (an MLP on state changes, or a CNN on the frames)."""
     if features == "pixels":
-        predicted = fit_cnn(demo["x"], demo["y"], probe["x"], num_bins, seed, epochs)
-    else:
-        from sklearn.neural_network import MLPClassifier
-        from sklearn.preprocessing import StandardScaler
-
-        scaler = StandardScaler().fit(demo["x"])
-        x_train, x_test = scaler.transform(demo["x"]), scaler.transform(probe["x"])
-        model = lambda: MLPClassifier((128, 128), max_iter=400, random_state=seed)  # noqa: E731
-        predicted = fit_per_dimension(model, x_train, demo["y"], x_test)
-    return score(predicted, demo["y"], probe)
-
-
-def score(predicted: np.ndarray, demo_labels: np.ndarray, probe: dict[str, np.ndarray]) -> dict[str, dict]:
-    """Per probe task: frames, share of frames whose whole action is in the demos' support, whole-action and
-    per-dimension accuracy of ``predicted`` (N_probe, D) bins."""
-    support = {tuple(a) for a in demo_labels}
-    in_support = np.array([tuple(a) in support for a in probe["y"]])
-    hits = predicted == probe["y"]
-    out = {}
-    for task in sorted(set(probe["task"])):
-        rows = probe["task"] == task
-        out[task] = {
-            "frames": int(rows.sum()),
-            "in_demo_support": float(in_support[rows].mean()),
-            "whole": float(hits[rows].all(1).mean()),
-            "per_dim": [float(v) for v in hits[rows].mean(0)],
-        }
-    return out
+        return score(fit_cnn(demo["x"], demo["y"], probe["x"], num_bins, seed, epochs), demo["y"], probe)
+    return state_ceiling(demo, probe, seed)
 
 
 # The inputs an inverse dynamics of the frame pair (t, t+1) is fitted on with --features=embedding, all from the

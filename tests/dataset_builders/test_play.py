@@ -1,0 +1,111 @@
+"""Play episodes (``--play_episodes_per_task``) and the inverse-dynamics screen (``jept-screen``) on a real
+tiny Meta-World build: one demo task, its scene-mate as the video-only task, play in both scenes."""
+
+import json
+
+import numpy as np
+import pytest
+
+from dataset_builders.core import build
+from dataset_builders.metaworld import MetaworldBuildConfig
+from lerobot_jept.envs.metaworld import STATE_DIM
+from lerobot_jept.mixing import labelled_mask
+from lerobot_jept.screen import ScreenConfig, load_frames, main, markdown, screen
+from tests.conftest import SIM, load
+
+PLAY = dict(
+    demo_tasks=["window-open-v3"],
+    video_tasks=["window-close-v3"],
+    unseen_tasks=[],
+    episodes_per_task=2,
+    prompts_per_task=1,
+    probe_episodes_per_task=1,
+    play_episodes_per_task=2,
+    image_size=32,
+    max_episode_steps=60,
+    num_workers=1,
+)
+
+
+@pytest.fixture(scope="module")
+def play_build():
+    summary = build(MetaworldBuildConfig(repo_id="test/play", **PLAY), SIM)
+    return summary
+
+
+def test_play_episodes_are_labelled_random_motion_in_each_scene_and_join_the_mix(play_build):
+    assert set(play_build["repos"]) == {"demo", "video", "play", "prompts", "probe", "mix"}
+    play = load("test/play_play")
+    build_meta = json.loads((play.root / "meta/jept_build.json").read_text())
+    assert build_meta["play_tasks"] == ["play:window-open-v3", "play:window-close-v3"]
+    assert "play:window-close-v3" not in sum(build_meta["split"].values(), [])  # in no split
+    strings = {build_meta["task_descriptions"][t] for t in build_meta["play_tasks"]}
+    assert set(play.meta.tasks.index) == strings and play.meta.total_episodes == 4
+    # every play episode is kept and runs to the episode limit; its actions are bin centres, held for a while
+    # (so the arm travels) and varied (not an expert's)
+    table = play.hf_dataset.with_format("numpy")
+    actions, episodes = np.stack(table["action"]), table["episode_index"]
+    assert play.meta.total_frames == 4 * PLAY["max_episode_steps"]
+    assert np.isin(np.round(actions * 3), np.arange(-3, 4)).all()  # 7 bins over [-1, 1]
+    first = actions[episodes == episodes[0]]
+    held = (first[1:] == first[:-1]).all(1).mean()
+    assert 0.6 < held < 0.95 and len({tuple(a) for a in first}) > 3
+    # the mix: demo + play labelled, video unlabelled; the prompt bank has the play tasks too
+    mix = load("test/play_mix")
+    assert mix.meta.total_episodes == 2 + 2 + 4
+    assert labelled_mask(mix).sum() == load("test/play_demo").meta.total_frames + play.meta.total_frames
+    assert strings <= set(load("test/play_prompts").meta.tasks.index)
+    record = json.loads((mix.root.parent / "play.build/jept_build.json").read_text())
+    assert record["metadata"]["flags"]["play_episodes_per_task"] == 2
+
+
+def test_screen_scores_each_arm_per_task_and_over_the_video_only_tasks(play_build, tmp_path):
+    cfg = ScreenConfig(
+        probe_repo_id="test/play_probe",
+        arms={"demos": ["test/play_demo"], "demos + play": ["test/play_demo", "test/play_play"]},
+        seeds=[0, 1],
+    )
+    results = screen(cfg)
+    demos, with_play = results["arms"]["demos"], results["arms"]["demos + play"]
+    assert with_play["labelled_frames"] > demos["labelled_frames"]
+    for arm in (demos, with_play):
+        rows = arm["per_task"]
+        assert {t: r["split"] for t, r in rows.items()} == {
+            "window-open-v3": "demo",
+            "window-close-v3": "video",
+        }
+        assert arm["video_only_mean"] == pytest.approx(rows["window-close-v3"]["whole_mean"])
+        assert len(rows["window-close-v3"]["whole"]) == 2 and 0 <= arm["video_only_mean"] <= 1
+    # play can only add labels: the share of the probe's actions in the labels' support does not fall
+    assert (
+        with_play["per_task"]["window-close-v3"]["in_support"]
+        >= demos["per_task"]["window-close-v3"]["in_support"]
+    )
+    assert "| **video-only mean** | video |" in markdown(results)
+
+    main(
+        [
+            "--probe_repo_id=test/play_probe",
+            "--arms={demos: [test/play_demo]}",
+            "--seeds=[0]",
+            f"--output_dir={tmp_path}",
+        ]
+    )
+    assert json.loads((tmp_path / "screen.json").read_text())["arms"]["demos"]["per_task"]
+    assert (tmp_path / "screen.png").stat().st_size > 1000
+
+
+def test_screen_refuses_unlabelled_repos_and_missing_arms(play_build, tmp_path):
+    with pytest.raises(SystemExit, match="test/play_video has no `action` column"):
+        main(["--probe_repo_id=test/play_probe", "--arms={v: [test/play_video]}", f"--output_dir={tmp_path}"])
+    with pytest.raises(SystemExit, match="--arms="):
+        main(["--probe_repo_id=test/play_probe"])
+    frames = load_frames("test/play_play", None, steps=2, num_bins=7)
+    assert frames["x"].shape[1] == 2 * STATE_DIM  # the next two self-state changes
+
+
+def test_play_flag_is_checked():
+    from dataset_builders.config import BuildError
+
+    with pytest.raises(BuildError, match="--play_episodes_per_task must be 0 or more"):
+        build(MetaworldBuildConfig(repo_id="test/bad_play", **{**PLAY, "play_episodes_per_task": -1}), SIM)
