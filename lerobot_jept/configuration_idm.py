@@ -24,6 +24,7 @@ class IDMConfig(JEPTConfig):
     trained backbone), ``optimizer_lr_predictor`` the Transformer and the action head.
     """
 
+    recipe: str = "paper"  # JEPT's options at the paper's values: none of them applies to the IDM
     prompt_align_weight: float = 0.0
     prompt_swap_weight: float = 0.0
 

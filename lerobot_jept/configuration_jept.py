@@ -1,4 +1,16 @@
-"""``JEPTConfig``: every hyperparameter of the paper's Tables 5-6, with the paper's values as defaults.
+"""``JEPTConfig``: every hyperparameter of the paper's Tables 5-6, and the recipe (``--policy.recipe``) that sets
+the options the paper does not have.
+
+``recipe="paper"`` is the paper's method: its objective (L_obs + c L_act), Gamma_act on the predictor's h_{t+1}
+hidden states, Algorithm 1's alternating schedule, no prompt guidance. ``recipe="plus"`` (the default) sets every
+departure of this package's recipe at once (:data:`RECIPES`): inverse dynamics on the self-state
+(``idm_input="self_state"``), the two prompt terms (``prompt_align_weight``, ``prompt_swap_weight``) and
+classifier-free guidance at control (``prompt_guidance=1``). An option given explicitly overrides its recipe's
+value; the checkpoint records the recipe and every value.
+
+Values the paper leaves open, set here by guess and marked "not given by the paper" below: the EMA decay
+(``ema_decay``), the prompt warm-up length (``prompt_warmup_steps``), the phase length of Algorithm 1
+(``phase_steps``), and the reading of Table 6's "90" as training epochs.
 
 Reading of Table 6 (its row labels are lost in the text we have): 90 epochs (``--steps`` in LeRobot), AdamW,
 learning rates 3e-5 for the joint embedding encoder and 7e-5 for the prompt video encoder and for the causal
@@ -27,6 +39,24 @@ PHASE_SCHEDULES = ("alternate", "joint")
 IDM_INPUTS = ("embedding", "self_state")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 ACTION_RANGES = ("fixed", "dataset")
+# The options each recipe sets, unless given explicitly. "paper": the paper's method; "plus": the departures that
+# made tasks seen only as video executable in the simulator (README, "Differences from the paper").
+RECIPES = {
+    "paper": dict(
+        idm_input="embedding",
+        prompt_align_weight=0.0,
+        prompt_swap_weight=0.0,
+        prompt_dropout=0.0,
+        prompt_guidance=0.0,
+    ),
+    "plus": dict(
+        idm_input="self_state",
+        prompt_align_weight=1.0,
+        prompt_swap_weight=1.0,
+        prompt_dropout=0.0,
+        prompt_guidance=1.0,
+    ),
+}
 
 
 def installed_version() -> str:
@@ -103,6 +133,10 @@ class JEPTConfig(PreTrainedConfig):
         action_dim: action size; taken from the dataset's ``action`` feature, needed only for datasets without
             one (expert videos alone).
         action_loss_weight: c in eq. 9 (8).
+        recipe: ``"paper"`` or ``"plus"`` (default): the values of ``idm_input``, ``prompt_align_weight``,
+            ``prompt_swap_weight``, ``prompt_dropout`` and ``prompt_guidance`` left unset (:data:`RECIPES`;
+            ``plus`` guides only a training that has a prediction without the prompt: a prompt warm-up or
+            prompt dropout).
         idm_input: what Gamma_act reads. "embedding" (the paper): the predictor's hidden states of the h_{t+1}
             tokens. "self_state" (not in the paper): a head Gamma_state predicts the self-state change
             s_{t+1} - s_t from the o_t tokens' hidden states (learned from demos and videos alike, with weight
@@ -112,11 +146,12 @@ class JEPTConfig(PreTrainedConfig):
             over to the video-only tasks (docs/prompt_collapse.md, section 16).
         state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
             divided by its running RMS); used with ``idm_input="self_state"`` only.
-        ema_decay: decay of the EMA target encoder (the paper does not give it; I-JEPA's 0.996).
+        ema_decay: decay of the EMA target encoder (not given by the paper; I-JEPA's 0.996).
         phase_schedule: "alternate" (Algorithm 1: encoder-only phases and other-components phases) or "joint".
-        phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch: set frames / batch size).
+        phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch; its length in steps is not
+            given by the paper: set frames / batch size for one epoch).
         prompt_warmup_steps: steps at the start during which E_prt is excluded from the predictor (A.4; the
-            paper gives no number).
+            length is not given by the paper).
         prompt_align_weight, prompt_align_temperature: not in the paper. A supervised contrastive term that
             pulls each sample's E_prt (mean token, projected) towards the EMA joint embeddings of every sample
             of the same task in the batch and away from the other tasks' (InfoNCE, temperature 0.1). Without
@@ -232,18 +267,19 @@ class JEPTConfig(PreTrainedConfig):
     action_dim: int | None = None
 
     action_loss_weight: float = 8.0
-    idm_input: str = "embedding"
+    recipe: str = "plus"
+    idm_input: str | None = None  # None: the recipe's
     state_loss_weight: float = 1.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
     phase_steps: int = 1000
     prompt_warmup_steps: int = 1000
-    prompt_align_weight: float = 1.0
+    prompt_align_weight: float | None = None  # None: the recipe's
     prompt_align_temperature: float = 0.1
-    prompt_swap_weight: float = 1.0
+    prompt_swap_weight: float | None = None
     prompt_swap_margin: float = 0.5
-    prompt_dropout: float = 0.0
-    prompt_guidance: float = 0.0
+    prompt_dropout: float | None = None
+    prompt_guidance: float | None = None
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5
@@ -271,6 +307,16 @@ class JEPTConfig(PreTrainedConfig):
         super().__post_init__()
         check_plugin_version(self.plugin_version, installed_version())
         register_processor_steps(self)
+        if self.recipe not in RECIPES:
+            raise ValueError(
+                f"recipe must be one of {tuple(RECIPES)}, got {self.recipe!r}: pass --policy.recipe=paper (the "
+                "paper's method) or --policy.recipe=plus (this package's recipe)."
+            )
+        unset = [name for name in RECIPES[self.recipe] if getattr(self, name) is None]
+        for name in unset:
+            setattr(self, name, RECIPES[self.recipe][name])
+        if "prompt_guidance" in unset and not (self.prompt_dropout or self.prompt_warmup_steps):
+            self.prompt_guidance = 0.0  # the recipe's guidance needs a prediction without the prompt
         if self.prompt_cache_dtype not in ("float32", "bfloat16", "float16"):
             raise ValueError(
                 f"prompt_cache_dtype must be float32, bfloat16 or float16, got {self.prompt_cache_dtype!r}."
@@ -506,6 +552,7 @@ class BehaviourCloningConfig(JEPTConfig):
     """Base of the baselines that clone actions from the k context frames (``jept_dt_star``, ``jept_vid2robot``): JEPT's
     sizes, no joint embedding target (so no prompt terms), samples of k frames without a next one."""
 
+    recipe: str = "paper"  # JEPT's options at the paper's values: none of them applies to a baseline
     prompt_align_weight: float = 0.0
     prompt_swap_weight: float = 0.0
     drop_n_last_frames: int = 0

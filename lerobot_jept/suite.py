@@ -93,6 +93,12 @@ class SuiteConfig:
     probe: bool = True
     probe_repo_id: str | None = None
     probe_root: str | None = None
+    # Which of the build's splits to evaluate (demo, video, unseen); every one by default.
+    splits: list[str] = field(default_factory=lambda: ["demo", "video", "unseen"])
+    # Also evaluate each video-only task under its scene-mate's prompt (the build's other task in the same
+    # scene, e.g. window-open's prompt in window-close's scene): if the prompt, not the scene, drives the
+    # behaviour, the intended task's success falls to its floor. Written as the row "T_vid, scene-mate's prompt".
+    scene_mate_prompts: bool = False
 
 
 class SuiteError(ValueError):
@@ -110,6 +116,26 @@ def read_build_metadata(repo_id: str, root: str | None) -> tuple[dict, Path]:
             "Pass the builder's ORG/NAME_mix repo."
         )
     return json.loads(path.read_text()), Path(meta.root)
+
+
+SCENE_MATE_ROW = "T_vid, scene-mate's prompt"
+
+
+def scene_mate_of(build: dict, video_tasks: list[str]) -> dict[str, str]:
+    """Each video-only task's scene-mate: the build's other task (any split) whose name shares its scene."""
+    from lerobot_jept.prompt_probe import scene_key
+
+    every = [t for tasks in build["split"].values() for t in tasks]
+    mates = {}
+    for task in video_tasks:
+        others = [t for t in every if t != task and scene_key(t) == scene_key(task)]
+        if not others:
+            raise SuiteError(
+                f"--scene_mate_prompts: {task} has no scene-mate in the build (no other task shares its scene); "
+                "build its pair (e.g. window-open-v3 with window-close-v3) or drop the flag."
+            )
+        mates[task] = others[0]
+    return mates
 
 
 def summarise(split: dict[str, list[str]], success: dict[str, float]) -> dict[str, float]:
@@ -168,8 +194,11 @@ def bar_chart(rows: dict[str, float], path: Path, paper: bool, title: str) -> No
     plt.close(fig)
 
 
-def evaluate_task(cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str, out: Path) -> dict:
-    """One task through LeRobot's ``eval_main`` with the ``jept_metaworld`` env; returns its eval_info."""
+def evaluate_task(
+    cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str, out: Path, prompt_task: str | None = None
+) -> dict:
+    """One task through LeRobot's ``eval_main`` with the ``jept_metaworld`` env (showing ``prompt_task``'s
+    prompts when given, else the task's own); returns its eval_info."""
     from lerobot.configs.default import EvalConfig
     from lerobot.configs.eval import EvalPipelineConfig
     from lerobot.configs.policies import PreTrainedConfig
@@ -188,6 +217,7 @@ def evaluate_task(cfg: SuiteConfig, task: str, build: dict, prompt_repo_id: str,
         prompt_repo_id=prompt_repo_id,
         prompt_root=cfg.prompt_root,
         prompt_max_frames=getattr(policy, "max_prompt_length", 250),
+        prompt_task=prompt_task,
     )
     if protocol["simulator"] == "metaworld":
         env = JeptMetaworldEnvConfig(**common, action_repeat=protocol["action_repeat"])
@@ -217,28 +247,43 @@ def run_suite(cfg: SuiteConfig) -> dict:
     split = build["split"]
     from lerobot.configs.policies import PreTrainedConfig
 
-    policy_type = PreTrainedConfig.from_pretrained(cfg.policy.path).type
+    saved = PreTrainedConfig.from_pretrained(cfg.policy.path)
+    policy_type, recipe = saved.type, getattr(saved, "recipe", None) if saved.type == "jept" else None
     probe_repo_id = (cfg.probe_repo_id or build["repos"].get("probe")) if cfg.probe else None
     prompt_repo_id = cfg.prompt_repo_id or build["repos"].get("prompts")
     if not prompt_repo_id:
         raise SuiteError(
             f"{cfg.dataset.repo_id} names no prompt bank (a jept-mix output): pass --prompt_repo_id=ORG/NAME_prompts."
         )
-    tasks = [(t, role) for role in ("demo", "video", "unseen") for t in split[role]]
+    unknown = sorted(set(cfg.splits) - set(split))
+    if unknown or not cfg.splits:
+        raise SuiteError(f"--splits takes some of {sorted(split)}, got {cfg.splits}.")
+    split = {role: (tasks if role in cfg.splits else []) for role, tasks in split.items()}
+    runs = [(t, role, None) for role in ("demo", "video", "unseen") for t in split[role]]
+    if cfg.scene_mate_prompts:
+        runs += [(t, "video", mate) for t, mate in scene_mate_of(build, split["video"]).items()]
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     per_task = {}
-    for task, role in tqdm(tasks, desc="suite tasks", unit="task"):
-        info = evaluate_task(cfg, task, build, prompt_repo_id, out / "tasks" / task)
+    for task, role, mate in tqdm(runs, desc="suite tasks", unit="task"):
+        folder = out / "tasks" / (task if mate is None else f"{task}.prompt_{mate}")
+        info = evaluate_task(cfg, task, build, prompt_repo_id, folder, prompt_task=mate)
         overall = info["overall"]
-        per_task[task] = {
+        result = {
             "split": role,
             "pc_success": float(overall["pc_success"]),
             "n_episodes": int(overall["n_episodes"]),
             "successes": [bool(s) for t in info["per_task"] for s in t["metrics"]["successes"]],
-            "eval_info": str(out / "tasks" / task / "eval_info.json"),
+            "eval_info": str(folder / "eval_info.json"),
         }
+        if mate is None:
+            per_task[task] = result
+        else:
+            per_task[task]["scene_mate"] = {"prompt_task": mate, **result}
     rows = summarise(split, {t: r["pc_success"] for t, r in per_task.items()})
+    mates = [r["scene_mate"]["pc_success"] for r in per_task.values() if "scene_mate" in r]
+    if mates:
+        rows[SCENE_MATE_ROW] = sum(mates) / len(mates)
     paper = (
         policy_type == "jept"
         and simulator == "metaworld"
@@ -247,6 +292,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
     results = {
         "policy": cfg.policy.path,
         "policy_type": policy_type,
+        "recipe": recipe,
         "simulator": simulator,
         "dataset": cfg.dataset.repo_id,
         "n_episodes": cfg.n_episodes,

@@ -311,7 +311,11 @@ def test_baseline_trains_and_evaluates_with_lerobot(tiny_build, tmp_path, policy
     assert results["policy_type"] == f"jept_{policy_type}"
     assert all(len(r["successes"]) == 2 for r in results["per_task"].values())
     probe = results["prompt_probe"]  # the baselines' offline measures: control only (no inverse, no L_obs)
-    assert probe["policy_type"] == f"jept_{policy_type}" and set(probe["splits"]) == {"T_demo", "T_vid", "T_unseen"}
+    assert probe["policy_type"] == f"jept_{policy_type}" and set(probe["splits"]) == {
+        "T_demo",
+        "T_vid",
+        "T_unseen",
+    }
     assert all("control_whole" in r and "inverse_whole" not in r for r in probe["actions"].values())
 
 

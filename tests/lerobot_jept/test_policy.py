@@ -1,6 +1,7 @@
 """The `jept` policy on a real tiny Meta-World build: losses, masking, EMA, phases, save/load, control cache."""
 
 import copy
+import json
 import sys
 
 import pytest
@@ -96,20 +97,49 @@ def test_forward_returns_both_losses_and_labelled_fraction(policy_and_batch):
     labels[batch["action_is_pad"]] = IGNORE_INDEX
     expected = (labels != IGNORE_INDEX).all(-1).float().mean().item()
     assert 0 < expected < 1 and info["labelled_fraction"] == pytest.approx(expected)
-    prompt_terms = info["loss_prompt_align"] + info["loss_prompt_swap"]  # both weights 1 by default
-    assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"] + prompt_terms, rel=1e-4)
+    # the default recipe (plus): both prompt terms at weight 1 and the self-state change's loss, weight 1
+    assert policy.config.recipe == "plus" and policy.config.idm_input == "self_state"
+    extra = info["loss_prompt_align"] + info["loss_prompt_swap"] + info["loss_state"]
+    assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"] + extra, rel=1e-4)
     per_sample, _ = policy.forward(batch, reduction="none")
     assert per_sample.shape == (8,)
 
 
-def test_paper_objective_without_the_prompt_losses(tiny_build, policy_and_batch):
-    """prompt_align_weight = prompt_swap_weight = 0 is the paper's L_obs + c * L_act, and nothing else runs."""
+def test_paper_recipe_is_the_papers_objective_and_options_override_a_recipe(
+    tiny_build, policy_and_batch, tmp_path
+):
+    """recipe=paper is the paper's L_obs + c * L_act with Gamma_act on the predictor's h_t+1 states, and nothing
+    else runs; an option given explicitly overrides its recipe's value, and the checkpoint records both."""
     *_, batch = policy_and_batch
-    policy, _, _ = build_policy(tiny_build, prompt_align_weight=0.0, prompt_swap_weight=0.0)
+    policy, _, _ = build_policy(tiny_build, recipe="paper")
+    cfg = policy.config
+    assert (cfg.idm_input, cfg.prompt_align_weight, cfg.prompt_swap_weight, cfg.prompt_guidance) == (
+        "embedding",
+        0.0,
+        0.0,
+        0.0,
+    )
     policy.eval()
     loss, info = policy.forward(batch)
-    assert "loss_prompt_align" not in info and "loss_prompt_swap" not in info
+    assert not {"loss_prompt_align", "loss_prompt_swap", "loss_state"} & set(info)
     assert loss.item() == pytest.approx(info["loss_obs"] + 8 * info["loss_act"], rel=1e-4)
+
+    mixed = tiny_config(recipe="paper", idm_input="self_state")
+    assert mixed.idm_input == "self_state" and mixed.prompt_swap_weight == 0.0
+    mixed._save_pretrained(tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert saved["recipe"] == "paper" and saved["idm_input"] == "self_state"
+    assert JEPTConfig.from_pretrained(tmp_path).idm_input == "self_state"
+    plus = tiny_config(prompt_warmup_steps=100)
+    assert (plus.recipe, plus.idm_input, plus.prompt_align_weight, plus.prompt_guidance) == (
+        "plus",
+        "self_state",
+        1.0,
+        1.0,
+    )
+    assert tiny_config().prompt_guidance == 0.0  # no prompt warm-up, no dropout: nothing to guide against
+    with pytest.raises(ValueError, match="--policy.recipe=paper"):
+        tiny_config(recipe="mine")
 
 
 def test_prompt_losses_train_only_the_second_phase(tiny_build, policy_and_batch):
@@ -500,7 +530,7 @@ def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     policy, pre, _ = build_policy(
-        tiny_build, idm_input=idm_input, prompt_dropout=dropout, prompt_warmup_steps=1
+        tiny_build, idm_input=idm_input, prompt_dropout=dropout, prompt_warmup_steps=1, prompt_guidance=0.0
     )
     m = policy.model
     policy.train()
