@@ -14,11 +14,12 @@ VENV := .venv
 RUN := MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/python
 export UV_PYTHON_DOWNLOADS := never
 
-.PHONY: help setup system-deps demo study test test-slow test-all lint bench clean
+.PHONY: help setup system-deps demo study study-transfer test test-slow test-all lint bench clean
 
 help:
 	@echo "make demo   set up, build a tiny Meta-World mixture, train jept with lerobot-train, run the eval suite"
 	@echo "make study  set up, run examples/studies/cpu_small.json (resumable; about 1 h 55 min here)"
+	@echo "make study-transfer  set up, run examples/studies/cpu_transfer.json (four scene pairs, both directions)"
 	@echo "make test   set up, lint, run the tests (make test-slow: the slow ones; CI runs both)"
 	@echo "make bench  set up, print the benchmark figures (name: value)"
 
@@ -50,6 +51,9 @@ lint: setup
 
 study: setup
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/jept-study --config=examples/studies/cpu_small.json
+
+study-transfer: setup
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/jept-study --config=examples/studies/cpu_transfer.json
 
 test: lint
 	$(RUN) -m pytest tests -m "not slow" --durations=25

@@ -92,6 +92,15 @@ def load_run(folder: str) -> dict:
     return results
 
 
+def column_name(method: str, results: list[dict]) -> str:
+    """The method's column: its name, with the recipe its JEPT checkpoints were trained with ("JEPT (plus)")
+    unless the name already says it."""
+    recipes = {r.get("recipe") for r in results} - {None}
+    if len(recipes) != 1 or next(iter(recipes)) in method.lower():
+        return method
+    return f"{method} ({recipes.pop()})"
+
+
 def t_interval(values: list[float], confidence: float) -> tuple[float, float]:
     from scipy import stats
 
@@ -128,12 +137,23 @@ def compare(cfg: CompareConfig) -> dict:
                     "runs of the same mix (the suite reads the split from it)."
                 )
     simulator = first["simulator"]
-    rows = list(first["table"])
+    rows = list(dict.fromkeys(row for results in runs.values() for r in results for row in r["table"]))
+    runs = {column_name(method, results): results for method, results in runs.items()}
     table = {}
     for method, results in runs.items():
         table[method] = {}
         for row in rows:
-            values = [float(r["table"][row]) for r in results]
+            values = [float(r["table"][row]) for r in results if row in r["table"]]
+            if not values:  # a row this method's suites did not evaluate (e.g. the scene-mate's prompt)
+                nan = math.nan
+                table[method][row] = {
+                    "mean": nan,
+                    "low": nan,
+                    "high": nan,
+                    "seeds": [],
+                    "interval": "not run",
+                }
+                continue
             if len(values) >= 2:
                 low, high = t_interval(values, cfg.confidence)
                 kind = "t over seeds"
@@ -149,7 +169,7 @@ def compare(cfg: CompareConfig) -> dict:
             }
     paper = paper_columns(simulator, split)
     paper_table, paper_name = paper if paper else ({}, None)
-    paper_match = {m: p for m in runs for p in paper_table if _key(p) == _key(m)}
+    paper_match = {m: p for m in runs for p in paper_table if _key(p) == _key(m.split(" (")[0])}
     comparison = {
         "simulator": simulator,
         "split": split,
@@ -183,7 +203,9 @@ def markdown(comparison: dict, rows: list[str]) -> str:
                 cells.append(f"{paper[method][row]:.1f}")
             else:
                 c = table[method][row]
-                cells.append(f"{c['mean']:.1f} [{c['low']:.1f}, {c['high']:.1f}]")
+                cells.append(
+                    "-" if c["mean"] != c["mean"] else f"{c['mean']:.1f} [{c['low']:.1f}, {c['high']:.1f}]"
+                )
         lines.append(f"| {row} | " + " | ".join(cells) + " |")
     seeds = ", ".join(f"{m}: {len(next(iter(c.values()))['seeds'])}" for m, c in table.items())
     lines += [

@@ -72,6 +72,7 @@ class BuildSpec:
     episodes_per_task: int = 30
     prompts_per_task: int = 4
     probe_episodes_per_task: int = 4
+    play_episodes_per_task: int = 0  # labelled play episodes per demo and video task's scene (in the mix)
     image_size: int = 96
     seed: int = 0
     num_workers: int = 2
@@ -81,9 +82,11 @@ class BuildSpec:
 @dataclass
 class MethodSpec:
     """One column of the tables. ``kind``: ``train`` (``lerobot-train`` with ``config`` on the split's ``data``
-    repo, ``mix`` or ``demo``) or ``bc_idm`` (an ``jept_idm`` from ``idm_config`` on ``_demo``, ``jept-relabel`` of
-    ``_mix``, then ``config`` — a ``jept_dt_star`` config — on the relabelled repo). ``args``: ``lerobot-train`` flags
-    of this method (a ``jept`` variant is ``jept`` with overrides)."""
+    repo: ``mix``; ``demo``; or ``labelled``, every labelled frame of the mix without the videos, i.e. ``_demo``
+    plus ``_play`` when the build has play episodes) or ``bc_idm`` (a ``jept_idm`` from ``idm_config`` on the
+    labelled frames, ``jept-relabel`` of ``_mix``, then ``config``, a ``jept_dt_star`` config, on the relabelled
+    repo). ``args``: ``lerobot-train`` flags of this method (a ``jept`` variant is ``jept`` with overrides).
+    ``eval_episodes`` (default: the study's) and ``suite_args`` (added to the study's) set its evaluation."""
 
     name: str = "JEPT"
     kind: str = "train"
@@ -92,6 +95,28 @@ class MethodSpec:
     args: list[str] = field(default_factory=list)
     idm_config: str = "examples/configs/train_idm_small_cpu.json"
     idm_args: list[str] = field(default_factory=list)
+    eval_episodes: int | None = None
+    suite_args: list[str] = field(default_factory=list)
+
+
+@dataclass
+class PreRegisteredTest:
+    """The study's test, written in the study file before it runs.
+
+    A case is one video-only task of one split (a scene pair in one direction). The primary measure is the
+    case's success rate in the simulator, one value per training seed: seeds, not episodes, are the unit (a
+    checkpoint's episodes share it). ``method`` passes a case when its mean over seeds exceeds ``baseline``'s
+    (the same recipe on the same data without the videos) by more than the larger of the two arms' seed ranges.
+    The hypothesis holds when at least ``min_cases`` cases pass, the mean over all cases reaches ``goal_mean``
+    %, and under the scene-mate's prompt (``--scene_mate_prompts``) every case's success is at most
+    ``floor_margin`` points above the upper end of its random floor's 95% Wilson interval (the prompt, not the
+    scene, drives the behaviour). Welch's p over seeds is reported beside each case."""
+
+    method: str = ""
+    baseline: str = ""
+    min_cases: int = 6
+    goal_mean: float = 50.0
+    floor_margin: float = 0.0
 
 
 @dataclass
@@ -109,6 +134,11 @@ class StudyConfig:
     eval_batch_size: int = 10
     eval_seed: int = 1000
     eval_episode_length: int | None = None  # default: the build's max_episode_steps
+    suite_args: list[str] = field(
+        default_factory=list
+    )  # jept-eval-suite flags of every run (e.g. --splits=[video])
+    # The test fixed before the study runs (see PreRegisteredTest); None for a study without one.
+    test: PreRegisteredTest | None = None
     random_episodes: int = 20  # per task, for the random 7-bin floor; 0 skips it
     output_dir: Path | None = None  # default: outputs/study/<name>
     device: str = "cpu"
@@ -161,6 +191,12 @@ def output_dir(cfg: StudyConfig) -> Path:
     return Path(cfg.output_dir) if cfg.output_dir else Path("outputs/study") / cfg.name
 
 
+def lerobot_home() -> Path:
+    from lerobot.utils.constants import HF_LEROBOT_HOME
+
+    return Path(HF_LEROBOT_HOME)
+
+
 def bin_path(name: str) -> str:
     return str(Path(sys.prefix) / "bin" / name)
 
@@ -174,9 +210,9 @@ def validate(cfg: StudyConfig) -> None:
         if len(set(names)) != len(names):
             raise StudyError(f"Two {what}s share a name in {names}: names are folders and columns.")
     for m in cfg.methods:
-        if m.kind not in ("train", "bc_idm") or m.data not in ("mix", "demo"):
+        if m.kind not in ("train", "bc_idm") or m.data not in DATA:
             raise StudyError(
-                f"Method {m.name!r}: kind must be train or bc_idm and data mix or demo (got {m.kind}, {m.data})."
+                f"Method {m.name!r}: kind must be train or bc_idm and data one of {DATA} (got {m.kind}, {m.data})."
             )
         for path in [m.config] + ([m.idm_config] if m.kind == "bc_idm" else []):
             if not Path(path).is_file():
@@ -184,10 +220,30 @@ def validate(cfg: StudyConfig) -> None:
                     f"Method {m.name!r}: train config {path} does not exist (paths are relative to "
                     "the folder jept-study runs in)."
                 )
+    names = [m.name for m in cfg.methods]
+    if cfg.test is not None and not {cfg.test.method, cfg.test.baseline} <= set(names):
+        raise StudyError(
+            f"The test compares {cfg.test.method!r} with {cfg.test.baseline!r}; both must be methods of the study "
+            f"({names})."
+        )
+    if cfg.test is not None and not any("--scene_mate_prompts=true" in m.suite_args for m in cfg.methods):
+        raise StudyError(
+            "The test reads the method's success under the scene-mate's prompt: give its method "
+            '"suite_args": ["--scene_mate_prompts=true"].'
+        )
     if cfg.steps < 1 or cfg.eval_episodes < 1:
         raise StudyError("steps and eval_episodes must be at least 1.")
     if cfg.device not in ("cpu", "cuda", "mps"):
         raise StudyError(f"--device must be cpu, cuda or mps, got {cfg.device!r}.")
+
+
+DATA = ("mix", "demo", "labelled")
+
+
+def labelled_repo(cfg: StudyConfig, split: SplitSpec) -> str:
+    """Every labelled frame of the split's build: ``_demo``, plus ``_play`` when it has play episodes (mixed by
+    the split's ``labelled`` step)."""
+    return f"{split.repo_id}_labelled" if cfg.build.play_episodes_per_task else f"{split.repo_id}_demo"
 
 
 def slug(name: str) -> str:
@@ -205,6 +261,7 @@ def build_command(cfg: StudyConfig, split: SplitSpec) -> list[str]:
         f"--episodes_per_task={b.episodes_per_task}",
         f"--prompts_per_task={b.prompts_per_task}",
         f"--probe_episodes_per_task={b.probe_episodes_per_task}",
+        *([f"--play_episodes_per_task={b.play_episodes_per_task}"] if b.play_episodes_per_task else []),
         f"--image_size={b.image_size}",
         f"--seed={b.seed}",
         f"--num_workers={b.num_workers}",
@@ -267,6 +324,22 @@ def plan(cfg: StudyConfig) -> list[Step]:
         steps.append(
             Step(f"{split.name}/build", f"build {split.repo_id}", split_dir, build_command(cfg, split))
         )
+        if cfg.build.play_episodes_per_task:
+            steps.append(
+                Step(
+                    f"{split.name}/labelled",
+                    f"labelled frames {split.repo_id}",
+                    split_dir,
+                    [
+                        bin_path("jept-mix"),
+                        f"--demo_repo_ids=[{split.repo_id}_demo, {split.repo_id}_play]",
+                        f"--output_repo_id={labelled_repo(cfg, split)}",
+                    ],
+                    prepare=lambda split=split: shutil.rmtree(
+                        lerobot_home() / labelled_repo(cfg, split), ignore_errors=True
+                    ),
+                )
+            )
         if cfg.random_episodes > 0:
             steps.append(
                 Step(
@@ -289,7 +362,7 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 prompts = f"{split.repo_id}_prompts"
                 if method.kind == "bc_idm":
                     idm = folder / "idm"
-                    demo = [f"--dataset.repo_id={split.repo_id}_demo"]
+                    demo = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
                     steps.append(
                         train_step(
                             cfg, f"{key}/idm", idm, method.idm_config, demo, seed, method.idm_args, None
@@ -314,23 +387,27 @@ def plan(cfg: StudyConfig) -> list[Step]:
                         )
                     )
                     data = [f"--dataset.repo_id={relabelled}", f"--dataset.root={relabel_root}"]
+                elif method.data == "labelled":
+                    data = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
                 else:
                     data = [f"--dataset.repo_id={split.repo_id}_{method.data}"]
                 steps.append(
                     train_step(cfg, f"{key}/train", folder, method.config, data, seed, method.args, prompts)
                 )
+                episodes = method.eval_episodes or cfg.eval_episodes
                 suite = [
                     bin_path("jept-eval-suite"),
                     f"--policy.path={checkpoint(folder)}",
                     f"--policy.device={cfg.device}",
                     f"--dataset.repo_id={split.repo_id}_mix",
-                    f"--n_episodes={cfg.eval_episodes}",
-                    f"--batch_size={min(cfg.eval_batch_size, cfg.eval_episodes)}",
+                    f"--n_episodes={episodes}",
+                    f"--batch_size={min(cfg.eval_batch_size, episodes)}",
                     f"--seed={cfg.eval_seed}",
                     f"--output_dir={folder / 'suite'}",
                 ]
                 if cfg.eval_episode_length:
                     suite.append(f"--episode_length={cfg.eval_episode_length}")
+                suite += [*cfg.suite_args, *method.suite_args]
                 steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite))
         steps += visualize_steps(cfg, split, split_dir)
         runs = {m.name: [str(run_folder(out, split, m, s) / "suite") for s in cfg.seeds] for m in cfg.methods}
@@ -728,9 +805,124 @@ def write_report(cfg: StudyConfig) -> Path:
     if len(cfg.splits) > 1 and table2:
         plot_table2(cfg, table2, out / "table2.png")
         lines += ["## Success against the number of video-only tasks", "", "![table 2](table2.png)", ""]
+    if cfg.test is not None:
+        text, verdict = preregistered_test(cfg)
+        (out / "test.json").write_text(json.dumps(verdict, indent=2))
+        lines += text
     report = out / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson interval of a success rate, in %."""
+    if n == 0:
+        return math.nan, math.nan
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return 100 * max(centre - half, 0.0), 100 * min(centre + half, 1.0)
+
+
+def case_successes(cfg: StudyConfig, split: SplitSpec, method: str, task: str) -> tuple[list, list]:
+    """Per training seed with a finished suite: the task's success % with its own prompt, and under the
+    scene-mate's prompt (when the suite ran it)."""
+    spec = next(m for m in cfg.methods if m.name == method)
+    own, mate = [], []
+    for seed in cfg.seeds:
+        path = run_folder(output_dir(cfg), split, spec, seed) / "suite/results.json"
+        if not path.is_file():
+            continue
+        row = json.loads(path.read_text())["per_task"].get(task)
+        if row is None:
+            continue
+        own.append(row["pc_success"])
+        if "scene_mate" in row:
+            mate.append(row["scene_mate"]["pc_success"])
+    return own, mate
+
+
+def preregistered_test(cfg: StudyConfig) -> tuple[list[str], dict]:
+    """The study file's test on the finished runs: one row per case, and the verdict."""
+    from scipy import stats
+
+    test = cfg.test
+    out = output_dir(cfg)
+    cases, lines = [], []
+    for split in cfg.splits:
+        floor_path = out / slug(split.name) / "random_floor.done.json"
+        floor = json.loads(floor_path.read_text())["per_task"] if floor_path.is_file() else {}
+        for task in split.video_tasks:
+            arm, arm_mate = case_successes(cfg, split, test.method, task)
+            base, _ = case_successes(cfg, split, test.baseline, task)
+            margin = float(np.mean(arm) - np.mean(base)) if arm and base else math.nan
+            spread = max(np.ptp(arm), np.ptp(base)) if arm and base else math.nan
+            p = (
+                float(stats.ttest_ind(arm, base, equal_var=False).pvalue)
+                if len(arm) > 1 and len(base) > 1 and (np.ptp(arm) or np.ptp(base))
+                else math.nan
+            )
+            outcomes = floor.get(task, {}).get("successes", [])
+            floor_high = wilson(sum(outcomes), len(outcomes))[1]
+            mate = float(np.mean(arm_mate)) if arm_mate else math.nan
+            cases.append(
+                {
+                    "split": split.name,
+                    "task": task,
+                    "method_seeds": arm,
+                    "baseline_seeds": base,
+                    "margin": margin,
+                    "seed_spread": float(spread),
+                    "passes": bool(margin > spread),
+                    "welch_p": p,
+                    "scene_mate_success": mate,
+                    "floor_upper": floor_high,
+                    "within_floor": bool(mate <= floor_high + test.floor_margin),
+                }
+            )
+    done = [c for c in cases if c["method_seeds"] and c["baseline_seeds"]]
+    mean = float(np.mean([np.mean(c["method_seeds"]) for c in done])) if done else math.nan
+    passed = sum(c["passes"] for c in done)
+    verdict = {
+        "test": draccus.encode(test),
+        "cases": cases,
+        "cases_run": len(done),
+        "cases_passed": passed,
+        "mean_success": mean,
+        "holds": bool(
+            len(done) == len(cases)
+            and passed >= test.min_cases
+            and mean >= test.goal_mean
+            and all(c["within_floor"] for c in done)
+        ),
+    }
+    lines += [
+        "## The pre-registered test",
+        "",
+        f"Fixed in the study file before it ran: on each video-only task (a case), {test.method} against "
+        f"{test.baseline} over training seeds; a case passes when the difference of the means exceeds the "
+        f"larger seed range. The hypothesis needs at least {test.min_cases} of {len(cases)} cases passing, a mean "
+        f"of at least {test.goal_mean:.0f}% over the cases, and every case under the scene-mate's prompt within "
+        f"its random floor (upper end of the floor's 95% Wilson interval + {test.floor_margin:.0f}).",
+        "",
+        f"| split | video-only task | {test.method}, per seed | {test.baseline}, per seed | margin | seed range "
+        "| passes | Welch p | under the scene-mate's prompt | random floor, upper 95% |",
+        "|---|---|---|---|---:|---:|---|---:|---:|---:|",
+    ]
+    for c in cases:
+        seeds = [" / ".join(f"{v:.0f}" for v in c[k]) or "-" for k in ("method_seeds", "baseline_seeds")]
+        lines.append(
+            f"| {c['split']} | {c['task']} | {seeds[0]} | {seeds[1]} | {c['margin']:+.1f} | {c['seed_spread']:.1f} "
+            f"| {'yes' if c['passes'] else 'no'} | {c['welch_p']:.3f} | {c['scene_mate_success']:.1f} "
+            f"| {c['floor_upper']:.1f} |"
+        )
+    lines += [
+        "",
+        f"Cases run {len(done)} of {len(cases)}, passing {passed}; mean success of {test.method} over the cases "
+        f"{mean:.1f}%. The hypothesis **{'holds' if verdict['holds'] else 'does not hold'}**.",
+        "",
+    ]
+    return lines, verdict
 
 
 def success_table(comparison: dict, floor: dict | None, split: SplitSpec) -> list[str]:

@@ -240,6 +240,60 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
     assert "compare/comparison.png" in report
 
 
+def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
+    """Two cases (video-only tasks b, d): b passes (margin above both seed ranges, scene-mate's prompt at the
+    floor), d fails (inside the spread); the verdict needs min_cases passing, the goal mean and the floor."""
+    from lerobot_jept.study import PreRegisteredTest
+
+    split = {"demo": ["a"], "video": ["b", "d"], "unseen": []}
+    cfg = study(
+        tmp_path,
+        splits=[SplitSpec("s", "test/x", ["a"], ["b", "d"], [])],
+        methods=[
+            MethodSpec(
+                "R",
+                config=str(CONFIGS / "train_jept_small_cpu.json"),
+                suite_args=["--scene_mate_prompts=true"],
+            ),
+            MethodSpec("R0", config=str(CONFIGS / "train_jept_small_cpu.json"), data="labelled"),
+        ],
+        seeds=[1, 2, 3],
+        test=PreRegisteredTest(method="R", baseline="R0", min_cases=1, goal_mean=40.0),
+    )
+    validate(cfg)
+    out = Path(cfg.output_dir)
+    hits = {"R": {"b": [6, 7, 8], "d": [3, 5, 1]}, "R0": {"b": [1, 0, 2], "d": [2, 1, 3]}}
+    for method in cfg.methods:
+        for i, seed in enumerate(cfg.seeds):
+            folder = run_folder(out, cfg.splits[0], method, seed) / "suite"
+            outcome = {t: [True] * n[i] + [False] * (10 - n[i]) for t, n in hits[method.name].items()}
+            suite_output(folder, split, {"a": [True] * 10, **outcome})
+            results = json.loads((folder / "results.json").read_text())
+            if method.name == "R":
+                for task in ("b", "d"):
+                    results["per_task"][task]["scene_mate"] = {"prompt_task": "a", "pc_success": 0.0}
+            (folder / "results.json").write_text(json.dumps(results))
+    (out / "s").mkdir(parents=True, exist_ok=True)
+    floor = {t: {"pc_success": 0.0, "successes": [False] * 20} for t in ("a", "b", "d")}
+    (out / "s/random_floor.done.json").write_text(json.dumps({"per_task": floor}))
+    report = write_report(cfg).read_text()
+    verdict = json.loads((out / "test.json").read_text())
+    b, d = verdict["cases"]
+    assert (b["task"], b["method_seeds"], b["baseline_seeds"]) == ("b", [60.0, 70.0, 80.0], [10.0, 0.0, 20.0])
+    assert b["margin"] == pytest.approx(60.0) and b["seed_spread"] == 20.0 and b["passes"]
+    assert d["margin"] == pytest.approx(10.0) and d["seed_spread"] == 40.0 and not d["passes"]
+    assert b["within_floor"] and b["floor_upper"] == pytest.approx(16.1, abs=0.1)  # Wilson, 0 of 20
+    assert verdict["cases_passed"] == 1 and verdict["mean_success"] == pytest.approx((70 + 30) / 2)
+    assert verdict["holds"] and "The hypothesis **holds**" in report
+    assert "| s | b | 60 / 70 / 80 | 10 / 0 / 20 | +60.0 | 20.0 | yes |" in report
+
+    strict = dataclasses.replace(cfg, test=PreRegisteredTest(method="R", baseline="R0", min_cases=2))
+    write_report(strict)
+    assert not json.loads((out / "test.json").read_text())["holds"]
+    with pytest.raises(StudyError, match="both must be methods"):
+        validate(dataclasses.replace(cfg, test=PreRegisteredTest(method="R", baseline="nope")))
+
+
 @pytest.mark.slow
 def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build, tmp_path):
     """The real entry points on the session's tiny build (its builder re-run is a no-op): JEPT and BC+IDM, one
@@ -328,6 +382,7 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
         "cpu_small",
         "cpu_small_videos",
         "cpu_small_prompt",
+        "cpu_transfer",
         "paper_metaworld",
         "paper_table2",
         "paper_robosuite",
@@ -371,6 +426,37 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         ]
         train = next(s for s in steps if s.key.endswith("/train")).command
         assert "--policy.idm_input=self_state" in train and "--policy.prompt_guidance=2" in train
+    if name == "cpu_transfer":  # four scene pairs, each task once the demo and once the video-only one
+        a, b = cfg.splits
+        assert (a.demo_tasks, a.video_tasks) == (b.video_tasks, b.demo_tasks) and len(a.video_tasks) == 4
+        assert {t.split("-")[0] for t in a.video_tasks} == {"window", "door", "drawer", "faucet"}
+        assert cfg.build.play_episodes_per_task > 0 and cfg.test.method == "JEPT (plus)"
+        methods = {m.name: m for m in cfg.methods}
+        twin = methods[cfg.test.baseline]
+        assert (twin.config, twin.args, twin.data, methods[cfg.test.method].data) == (
+            methods[cfg.test.method].config,
+            methods[cfg.test.method].args,
+            "labelled",
+            "mix",
+        )  # the videos are the only difference
+        assert {"DT*", "BC+IDM", "Vid2Robot-M", "JEPT (paper)"} <= set(methods) and cfg.random_episodes >= 10
+        commands = {s.key: s.command for s in steps}
+        assert "--play_episodes_per_task=10" in commands["pairs_a/build"]
+        assert (
+            "--demo_repo_ids=[local/transfer_a_demo, local/transfer_a_play]" in commands["pairs_a/labelled"]
+        )
+        assert (
+            "--dataset.repo_id=local/transfer_a_labelled"
+            in commands["pairs_a/JEPT (plus), no videos/seed1000/train"]
+        )
+        assert "--dataset.repo_id=local/transfer_a_labelled" in commands["pairs_a/BC+IDM/seed1000/idm"]
+        recipe = commands["pairs_b_mirror/JEPT (plus)/seed2000/suite"]
+        assert (
+            "--n_episodes=20" in recipe
+            and "--scene_mate_prompts=true" in recipe
+            and "--splits=[video]" in recipe
+        )
+        assert "--n_episodes=10" in commands["pairs_a/DT*/seed1000/suite"]
     if name == "paper_metaworld":
         split = cfg.splits[0]
         assert {"demo": split.demo_tasks, "video": split.video_tasks, "unseen": split.unseen_tasks} == {
