@@ -70,9 +70,10 @@ def load_frames(
     names = task_names(dataset.meta) or {}
     tasks = dataset.meta.tasks
     task_of = {int(i): names.get(t, t) for t, i in zip(tasks.index, tasks["task_index"], strict=True)}
-    table = dataset.hf_dataset.with_format("numpy")
-    episode = table["episode_index"]
-    state, action, task_index = table["observation.state"], table["action"], table["task_index"]
+    columns = ["episode_index", "observation.state", "action", "task_index"]
+    table = dataset.hf_dataset.with_format("numpy", columns=columns)[:]  # one read, not one per episode
+    episode, task_index = table["episode_index"], table["task_index"]
+    state, action = np.stack(table["observation.state"]), np.stack(table["action"])
     image_key = next((k for k, f in dataset.meta.features.items() if f["dtype"] in ("video", "image")), None)
     if features == "pixels" and image_key is None:
         raise ScreenError(f"{repo_id} has no camera frames: use --features=state.")

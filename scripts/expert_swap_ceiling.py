@@ -3,7 +3,7 @@
     python -m scripts.expert_swap_ceiling --tasks='[window-close-v3, window-open-v3]' --episodes=8
 
 `jept-prompt-probe` counts the frames of a task whose chosen action changes when the task's bank prompt is
-swapped for a scene-mate's (issue 13 asks for "most frames"). How many *should* change is a property of the
+swapped for a scene-mate's (the target: "most frames"). How many *should* change is a property of the
 tasks, not of a checkpoint: this rolls out each task's scripted expert as a build does (same env, seeding, 7-bin
 actions, successful episodes only) and, at every recorded step, also asks each scene-mate's scripted expert
 (tasks whose names share their first word, as in the probe) what it would do from that same state. Per task and
@@ -11,7 +11,7 @@ mate it prints the share of frames whose binned whole action differs, and per di
 the swap rate a policy that follows its prompt the way the experts do would show on these states. A mate expert
 reads the state as its own task's observation (Meta-World's scripted policies key on the hand and object
 positions), so the figure is the mate's own rule applied off its task's start states. Used in
-docs/prompt_collapse.md, section 11.
+docs/results.md (the measurement log), section 11.
 """
 
 from dataclasses import dataclass, field

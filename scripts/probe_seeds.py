@@ -1,4 +1,4 @@
-"""Issue 13's action bar over training seeds: two arms' ``jept-prompt-probe`` outputs side by side, per task.
+"""The action target over training seeds: two arms' ``jept-prompt-probe`` outputs side by side, per task.
 
     python -m scripts.probe_seeds --arms='{videos: [RUN1/probe, RUN2/probe, RUN3/probe], demos: [...]}' \\
         --task=window-close-v3
@@ -6,11 +6,11 @@
 Each folder (or JSON file) is one training seed's probe on the same held-out repo: a ``jept-prompt-probe``
 output, or a ``jept-eval-suite`` output (its ``results.json`` carries the probe; a ``jept-study`` run's ``suite``
 folder). For ``--task`` and for its split (T_demo / T_vid / T_unseen) this prints, per arm, the mean, the 95%
-Student's t interval over seeds and the per-seed values of the probe's measures, then the bar the issue sets:
+Student's t interval over seeds and the per-seed values of the probe's measures, then the target:
 is the first arm's mean ``control`` whole-action accuracy on the task above the second arm's by more than the
 spread over seeds (the larger of the two arms' ranges, max - min)? Beside it, Welch's t-test of the same
 difference (its 95% interval and two-sided p), which does not grow stricter as seeds are added the way a range
-does. Used in docs/prompt_collapse.md, sections 15-20.
+does. Used in docs/results.md (the measurement log), sections 15-20.
 """
 
 import json
@@ -44,7 +44,7 @@ SPLIT_MEASURES = (
 class ProbeSeedsConfig:
     # arm name -> jept-prompt-probe / jept-eval-suite output folders (or their JSON files), one per training seed
     arms: dict[str, list[str]] = field(default_factory=dict)
-    task: str = "window-close-v3"  # the task whose actions the bar is about (a task of the probe repo)
+    task: str = "window-close-v3"  # the task whose actions the target is about (a task of the probe repo)
 
 
 def load_probe(path: str) -> dict:
@@ -85,7 +85,7 @@ def split_of(probe: dict, task: str) -> str:
 
 
 def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
-    """Per arm, the per-seed values of the task's and its split's measures; and the bar on the first two arms."""
+    """Per arm, the per-seed values of the task's and its split's measures; and the target on the first two arms."""
     for name, probes in arms.items():
         for probe in probes:
             if task not in probe["actions"]:
@@ -108,11 +108,17 @@ def compare_arms(arms: dict[str, list[dict]], task: str) -> dict:
         spread = float(max(np.ptp(x), np.ptp(y)))
         seeds = [len(x), len(y)]  # one seed has no spread to beat
         met = min(seeds) >= 2 and margin > spread
-        out["bar"] = {"arms": [first, second], "seeds": seeds, "margin": margin, "spread": spread, "met": met}
+        out["target"] = {
+            "arms": [first, second],
+            "seeds": seeds,
+            "margin": margin,
+            "spread": spread,
+            "met": met,
+        }
         if min(seeds) >= 2 and np.var(x) + np.var(y) > 0:
             welch = stats.ttest_ind(x, y, equal_var=False)
             low, high = welch.confidence_interval(0.95)
-            out["bar"]["welch"] = {"low": float(low), "high": float(high), "p": float(welch.pvalue)}
+            out["target"]["welch"] = {"low": float(low), "high": float(high), "p": float(welch.pvalue)}
     return out
 
 
@@ -136,19 +142,19 @@ def markdown(result: dict) -> str:
         lines.append("")
     nc = "; ".join(f"{name} {cell(result['arms'][name]['nc_trained'], 'nc')}" for name in names)
     lines += [f"E_prt nearest-centroid accuracy over the trained tasks' held-out prompts (%): {nc}", ""]
-    if bar := result.get("bar"):
-        first, second = bar["arms"]
+    if target := result.get("target"):
+        first, second = target["arms"]
         verdict = (
-            f"the bar (a margin larger than the spread) is {'met' if bar['met'] else 'not met'}"
-            if min(bar["seeds"]) >= 2
-            else "one seed in an arm has no spread: the bar needs at least two seeds per arm"
+            f"the target (a margin larger than the spread) is {'met' if target['met'] else 'not met'}"
+            if min(target["seeds"]) >= 2
+            else "one seed in an arm has no spread: the target needs at least two seeds per arm"
         )
         lines.append(
-            f"{result['task']} control whole: {first} - {second} = {100 * bar['margin']:+.1f} points; spread over "
-            f"seeds (larger range of the two arms, {' and '.join(map(str, bar['seeds']))} seeds) "
-            f"{100 * bar['spread']:.1f} points: {verdict}."
+            f"{result['task']} control whole: {first} - {second} = {100 * target['margin']:+.1f} points; spread over "
+            f"seeds (larger range of the two arms, {' and '.join(map(str, target['seeds']))} seeds) "
+            f"{100 * target['spread']:.1f} points: {verdict}."
         )
-        if welch := bar.get("welch"):
+        if welch := target.get("welch"):
             lines.append(
                 f"Welch's t-test of the difference: 95% interval [{100 * welch['low']:+.1f}, "
                 f"{100 * welch['high']:+.1f}] points, p = {welch['p']:.3f} (two-sided)."

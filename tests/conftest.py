@@ -1,4 +1,4 @@
-"""Test-session environment: offline Hub, headless rendering, and a private LeRobot home.
+"""The tests' environment: offline Hub, headless rendering, and a private LeRobot home.
 
 These must be set before LeRobot or MuJoCo are imported, hence at the top of conftest.
 """

@@ -109,3 +109,56 @@ def test_play_flag_is_checked():
 
     with pytest.raises(BuildError, match="--play_episodes_per_task must be 0 or more"):
         build(MetaworldBuildConfig(repo_id="test/bad_play", **{**PLAY, "play_episodes_per_task": -1}), SIM)
+
+
+def test_scene_mates_are_the_builds_other_task_of_the_scene():
+    from lerobot_jept.suite import SuiteError, scene_mate_of
+
+    build = {"split": {"demo": ["window-open-v3", "reach-v3"], "video": ["window-close-v3"], "unseen": []}}
+    assert scene_mate_of(build, ["window-close-v3"]) == {"window-close-v3": "window-open-v3"}
+    with pytest.raises(SuiteError, match="reach-v3 has no scene-mate"):
+        scene_mate_of(build, ["reach-v3"])
+
+
+@pytest.mark.slow
+def test_jept_trains_on_a_mix_with_play_and_is_evaluated_under_the_scene_mates_prompt(play_build, tmp_path):
+    """lerobot-train on the mix with play episodes (their prompts come from the bank like any task's), then
+    the suite on the video-only task alone, with its own prompt and with its scene-mate's."""
+    from tests.lerobot_jept.test_end_to_end import CONFIG, TINY_TRAIN, run
+
+    model = tmp_path / "train/checkpoints/last/pretrained_model"
+    run(
+        [
+            "lerobot-train",
+            f"--config_path={CONFIG}",
+            "--dataset.repo_id=test/play_mix",
+            "--policy.prompt_repo_id=test/play_prompts",
+            "--policy.image_size=32",
+            "--steps=2",
+            "--save_freq=2",
+            f"--output_dir={tmp_path / 'train'}",
+            *TINY_TRAIN,
+        ],
+        tmp_path,
+    )
+    run(
+        [
+            "jept-eval-suite",
+            f"--policy.path={model}",
+            "--dataset.repo_id=test/play_mix",
+            "--splits=[video]",
+            "--scene_mate_prompts=true",
+            "--n_episodes=1",
+            "--batch_size=1",
+            "--episode_length=8",
+            "--probe=false",
+            f"--output_dir={tmp_path / 'suite'}",
+        ],
+        tmp_path,
+    )
+    results = json.loads((tmp_path / "suite/results.json").read_text())
+    assert results["recipe"] == "plus" and list(results["per_task"]) == ["window-close-v3"]
+    mate = results["per_task"]["window-close-v3"]["scene_mate"]
+    assert mate["prompt_task"] == "window-open-v3" and mate["n_episodes"] == 1
+    assert "T_vid, scene-mate's prompt" in results["table"] and "T_demo" not in results["table"]
+    assert (tmp_path / "suite/tasks/window-close-v3.prompt_window-open-v3/eval_info.json").is_file()

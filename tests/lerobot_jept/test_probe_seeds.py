@@ -1,4 +1,4 @@
-"""Issue 13's action bar over seeds (scripts/probe_seeds.py): on a real probe of a saved checkpoint, and on
+"""The action target over seeds (scripts/probe_seeds.py): on a real probe of a saved checkpoint, and on
 hand-made probe outputs whose answer is known."""
 
 import copy
@@ -27,7 +27,9 @@ def test_reads_a_real_probe_output(checkpoint, tmp_path):  # noqa: F811
     assert result["arms"]["b"]["split"]["loss_obs"] == [probe["splits"]["T_vid"]["loss_obs"]]
     trained = probe["prompt_separability"]["trained_tasks"]["nearest_centroid_accuracy"]
     assert result["arms"]["a"]["nc_trained"] == [trained] * 2
-    assert result["bar"]["margin"] == 0.0 and not result["bar"]["met"] and "welch" not in result["bar"]
+    assert (
+        result["target"]["margin"] == 0.0 and not result["target"]["met"] and "welch" not in result["target"]
+    )
     assert "needs at least two seeds per arm" in markdown(result)  # arm b has one seed: no spread to beat
     with pytest.raises(SystemExit, match="not in the probed repo"):
         compare_arms({"a": [probe]}, "window-close-v3")
@@ -57,14 +59,16 @@ def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
     result = compare_arms({"videos": close, "demos": demos}, "close")
     # a per-scene-mate measure is the mean over the task's scene-mates
     assert result["arms"]["demos"]["task"]["swap_changed"] == pytest.approx([0.2] * 3)
-    assert result["bar"]["margin"] == pytest.approx(0.15) and result["bar"]["spread"] == pytest.approx(0.10)
-    assert result["bar"]["met"]
-    assert "the bar (a margin larger than the spread) is met" in markdown(result)
+    assert result["target"]["margin"] == pytest.approx(0.15) and result["target"]["spread"] == pytest.approx(
+        0.10
+    )
+    assert result["target"]["met"]
+    assert "the target (a margin larger than the spread) is met" in markdown(result)
     # Welch by hand: variances 0.0016 and 0.0025 over 3 seeds each, df from Welch-Satterthwaite
     se2 = (0.0016 / 3, 0.0025 / 3)
     df = sum(se2) ** 2 / (se2[0] ** 2 / 2 + se2[1] ** 2 / 2)
     half = t_dist.ppf(0.975, df) * np.sqrt(sum(se2))
-    welch = result["bar"]["welch"]
+    welch = result["target"]["welch"]
     assert df == pytest.approx(3.816, abs=1e-3)
     assert (welch["low"], welch["high"]) == pytest.approx((0.15 - half, 0.15 + half))
     assert welch["p"] == pytest.approx(2 * t_dist.sf(0.15 / np.sqrt(sum(se2)), df)) and welch["p"] < 0.05
@@ -74,9 +78,9 @@ def test_the_bar_is_the_margin_over_the_larger_range_of_the_two_arms():
     wide = copy.deepcopy(demos)
     wide[0]["actions"]["close"]["control_whole"] = 0.05  # the demos' range is now 0.25 > the margin 0.2
     result = compare_arms({"videos": close, "demos": wide}, "close")
-    assert result["bar"]["margin"] == pytest.approx(0.2) and not result["bar"]["met"]
+    assert result["target"]["margin"] == pytest.approx(0.2) and not result["target"]["met"]
     text = markdown(result)
     assert "is not met" in text
     assert "| control whole (%) | 40.0 [" in text and "20.0 [0.0, " in text  # intervals clipped to [0, 100]
     reversed_arms = compare_arms({"demos": demos, "videos": close}, "close")
-    assert not reversed_arms["bar"]["met"]  # the first arm must lead
+    assert not reversed_arms["target"]["met"]  # the first arm must lead

@@ -296,7 +296,7 @@ def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
 
 @pytest.mark.slow
 def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build, tmp_path):
-    """The real entry points on the session's tiny build (its builder re-run is a no-op): JEPT and BC+IDM, one
+    """The real entry points on the tests' tiny build (its builder re-run is a no-op): JEPT and BC+IDM, one
     seed, 2 steps, 10-step evaluations. Killed (with its children) during BC+IDM, re-run, then run again."""
     config = {
         "name": "micro",
@@ -415,7 +415,7 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         assert [(m.config, m.data) for m in cfg.methods] == [
             (small.methods[0].config, d) for d in ("mix", "demo")
         ]
-    # issue 13's configuration: the same scene pairs in a repo of their own, with and without the videos
+    # the prompt study's configuration: the same scene pairs in a repo of their own, with and without the videos
     if name == "cpu_small_prompt":
         small = draccus.parse(StudyConfig, config_path="examples/studies/cpu_small.json", args=[])
         split = cfg.splits[0]
