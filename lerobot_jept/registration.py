@@ -25,6 +25,7 @@ POLICY_CONFIG_MODULES = (
     "lerobot_jept.configuration_idm",
     "lerobot_jept.configuration_dt_star",
     "lerobot_jept.configuration_vid2robot",
+    "lerobot_jept.configuration_jept_no_prompt",
 )
 ENV_CONFIG_MODULE = "lerobot_jept.envs.configs"
 

@@ -99,33 +99,42 @@ def concat_frames(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {key: np.concatenate([p[key] for p in parts]) for key in ("x", "y", "task")}
 
 
-def fit_per_dimension(make_model, x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray) -> np.ndarray:
-    """(N_test, D) bin predicted per action dimension by a fresh ``make_model()`` classifier fitted on that
-    dimension; a dimension with one bin in the training labels is predicted as that bin."""
-    predicted = np.zeros((len(x_test), y_train.shape[1]), dtype=y_train.dtype)
-    for d in range(y_train.shape[1]):
-        y = y_train[:, d]
-        if len(set(y)) == 1:  # a dimension the labelled frames never move (the gripper of some tasks)
-            predicted[:, d] = y[0]
-            continue
-        predicted[:, d] = make_model().fit(x_train, y).predict(x_test)
-    return predicted
-
-
 def state_ceiling(
-    train: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int = 0
+    train: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int = 0, epochs: int = 40
 ) -> dict[str, dict]:
-    """Per probe task: :func:`score` of an MLP inverse dynamics (standardised inputs, one classifier per
-    action dimension) fitted on ``train``."""
-    from sklearn.neural_network import MLPClassifier
-    from sklearn.preprocessing import StandardScaler
+    """Per probe task: :func:`score` of an MLP inverse dynamics fitted on ``train`` (standardised inputs, two
+    hidden layers of 128, one softmax over the bins per action dimension, cross-entropy, ``epochs`` passes)."""
+    import torch
+    from torch import nn
 
-    scaler = StandardScaler().fit(train["x"])
-    model = lambda: MLPClassifier((128, 128), max_iter=400, random_state=seed)  # noqa: E731
-    predicted = fit_per_dimension(
-        model, scaler.transform(train["x"]), train["y"], scaler.transform(probe["x"])
+    torch.manual_seed(seed)
+    mean, std = train["x"].mean(0), train["x"].std(0) + 1e-8
+    x_train = torch.from_numpy((train["x"] - mean) / std).float()
+    x_test = torch.from_numpy((probe["x"] - mean) / std).float()
+    y = torch.from_numpy(train["y"]).long()
+    dims, bins = y.shape[1], int(max(train["y"].max(), probe["y"].max())) + 1
+    model = nn.Sequential(
+        nn.Linear(x_train.shape[1], 128),
+        nn.ReLU(),
+        nn.Linear(128, 128),
+        nn.ReLU(),
+        nn.Linear(128, dims * bins),
     )
-    return score(predicted, train["y"], probe)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-5)
+    generator = torch.Generator().manual_seed(seed)
+    for _ in range(epochs):
+        for batch in torch.randperm(len(x_train), generator=generator).split(256):
+            logits = model(x_train[batch]).view(-1, bins)
+            loss = nn.functional.cross_entropy(logits, y[batch].view(-1))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    with torch.no_grad():
+        predicted = model(x_test).view(len(x_test), dims, bins).argmax(-1).numpy()
+    for d in range(dims):  # a dimension the labelled frames never move (the gripper of some tasks): that bin
+        if len(set(train["y"][:, d])) == 1:
+            predicted[:, d] = train["y"][0, d]
+    return score(predicted.astype(train["y"].dtype), train["y"], probe)
 
 
 def score(predicted: np.ndarray, train_labels: np.ndarray, probe: dict[str, np.ndarray]) -> dict[str, dict]:

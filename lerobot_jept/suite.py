@@ -118,6 +118,7 @@ def read_build_metadata(repo_id: str, root: str | None) -> tuple[dict, Path]:
     return json.loads(path.read_text()), Path(meta.root)
 
 
+RECIPE_TYPES = ("jept", "jept_no_prompt")  # the types trained by a recipe (the baselines have none)
 SCENE_MATE_ROW = "T_vid, scene-mate's prompt"
 
 
@@ -248,7 +249,7 @@ def run_suite(cfg: SuiteConfig) -> dict:
     from lerobot.configs.policies import PreTrainedConfig
 
     saved = PreTrainedConfig.from_pretrained(cfg.policy.path)
-    policy_type, recipe = saved.type, getattr(saved, "recipe", None) if saved.type == "jept" else None
+    policy_type, recipe = saved.type, getattr(saved, "recipe", None) if saved.type in RECIPE_TYPES else None
     probe_repo_id = (cfg.probe_repo_id or build["repos"].get("probe")) if cfg.probe else None
     prompt_repo_id = cfg.prompt_repo_id or build["repos"].get("prompts")
     if not prompt_repo_id:

@@ -378,3 +378,37 @@ def test_idm_relabels_exactly_the_unlabelled_frames(tiny_build, tmp_path):
         ok=False,
     )
     assert "already exists" in again
+
+
+def test_jept_without_its_prompt_acts_the_same_under_any_prompt(tiny_build, tmp_path):
+    """jept_no_prompt: the recipe's losses, one learned E_prt for every sample (trained in the prompt group),
+    so another task's prompt video changes nothing; the prompt options are refused; save and reload act alike."""
+    from lerobot_jept import JEPTNoPromptConfig, JEPTNoPromptPolicy
+    from lerobot_jept.modeling_jept import PROMPT_VIDEO
+
+    policy, batch = build(tiny_build, JEPTNoPromptConfig, phase_schedule="joint", temporal_dropout=0.0)
+    cfg = policy.config
+    assert (cfg.type, cfg.recipe, cfg.idm_input) == ("jept_no_prompt", "plus", "self_state")
+    assert cfg.prompt_align_weight == cfg.prompt_swap_weight == cfg.prompt_guidance == 0.0
+    policy.train()
+    policy.num_updates.fill_(cfg.prompt_warmup_steps)  # past the warm-up: the constant stands in for the prompt
+    loss, info = policy.forward(batch)
+    loss.backward()
+    assert info["prompt_on"] == 1.0 and "loss_prompt_swap" not in info
+    assert policy.model.null_prompt.tokens.grad.abs().sum() > 0
+    assert all(p.grad is None for p in policy.model.prompt_encoder.parameters())
+    groups = {g["name"]: g["params"] for g in policy.get_optim_params()}
+    assert any(p is policy.model.null_prompt.tokens for p in groups["prompt"])
+
+    policy.eval()
+    swapped = {**batch, PROMPT_VIDEO: batch[PROMPT_VIDEO].flip(0)}  # each sample shown another's prompt
+    torch.testing.assert_close(
+        policy.offline_outputs(swapped)["control"], policy.offline_outputs(batch)["control"]
+    )
+    policy.save_pretrained(tmp_path)
+    reloaded = JEPTNoPromptPolicy.from_pretrained(tmp_path).eval()
+    torch.testing.assert_close(
+        reloaded.offline_outputs(batch)["control"], policy.offline_outputs(batch)["control"]
+    )
+    with pytest.raises(ValueError, match="jept_no_prompt has no prompt for --policy.prompt_swap_weight"):
+        JEPTNoPromptConfig(prompt_swap_weight=1.0)
