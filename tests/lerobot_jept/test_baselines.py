@@ -391,7 +391,9 @@ def test_jept_without_its_prompt_acts_the_same_under_any_prompt(tiny_build, tmp_
     assert (cfg.type, cfg.recipe, cfg.idm_input) == ("jept_no_prompt", "plus", "self_state")
     assert cfg.prompt_align_weight == cfg.prompt_swap_weight == cfg.prompt_guidance == 0.0
     policy.train()
-    policy.num_updates.fill_(cfg.prompt_warmup_steps)  # past the warm-up: the constant stands in for the prompt
+    policy.num_updates.fill_(
+        cfg.prompt_warmup_steps
+    )  # past the warm-up: the constant stands in for the prompt
     loss, info = policy.forward(batch)
     loss.backward()
     assert info["prompt_on"] == 1.0 and "loss_prompt_swap" not in info

@@ -439,7 +439,11 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
             "labelled",
             "mix",
         )  # the videos are the only difference
-        assert {"DT*", "BC+IDM", "Vid2Robot-M", "JEPT (paper)"} <= set(methods) and cfg.random_episodes >= 10
+        assert {"DT*", "BC+IDM", "Vid2Robot-M", "JEPT (paper)", "JEPT (plus), no prompt"} <= set(methods)
+        assert (
+            methods["JEPT (plus), no prompt"].args == ["--policy.type=jept_no_prompt"]
+            and cfg.random_episodes >= 10
+        )
         commands = {s.key: s.command for s in steps}
         assert "--play_episodes_per_task=10" in commands["pairs_a/build"]
         assert (
