@@ -18,7 +18,9 @@ class IDMConfig(JEPTConfig):
     action head (Table 5 defaults; the small configuration is ``examples/configs/train_idm_small_cpu.json``).
     The tokens of o_t and o_{t+1} (N_obs each) go through a bi-directional Transformer of the ``predictor_*``
     sizes, and the action head reads a_t from all of them. Loss: cross-entropy over the action bins on labelled
-    frames. No prompt: the IDM sees the transition, not the task. Unused (JEPT-only): ``n_obs_steps``,
+    frames. No prompt: the IDM sees the transition, not the task. ``--policy.idm_input=self_state``: the IDM is
+    an MLP from the self-state and its change (s_t, s_t+1 - s_t) alone, no camera (VPT / BCO style); the change
+    carries the action in every scene, so it labels the video-only tasks' frames far better than pixel tokens. Unused (JEPT-only): ``n_obs_steps``,
     ``joint_embedding_dim``, ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``action_loss_weight``,
     ``phase_*``, ``prompt_*`` and ``max_prompt_length``; ``optimizer_lr_encoder`` trains the tokenizer (and a
     trained backbone), ``optimizer_lr_predictor`` the Transformer and the action head.

@@ -1,11 +1,13 @@
-"""``IDMPolicy``: a_t = f(o_t, o_{t+1}) for the BC+IDM baseline. It labels recorded frames offline
-(``jept-relabel``); it is not a controller, so ``select_action`` says so."""
+"""``IDMPolicy``: a_t = f(o_t, o_{t+1}) for the BC+IDM baseline, from the two frames' tokens or, with
+``--policy.idm_input=self_state``, from the self-state and its change alone (VPT / BCO style). It labels recorded
+frames offline (``jept-relabel``); it is not a controller, so ``select_action`` says so."""
 
 from einops import rearrange
 from lerobot.utils.constants import OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_jept.components.attention import SelfAttentionStack, StepPositions
+from lerobot_jept.components.predictor import SelfStateInverseDynamics
 from lerobot_jept.configuration_idm import IDMConfig
 from lerobot_jept.policy_base import (
     DiscreteActionPolicy,
@@ -18,11 +20,23 @@ from lerobot_jept.policy_base import (
 
 
 class IDM(VisualPolicyNet):
-    """Backbone, single-frame tokenizer, a bi-directional Transformer over the two frames' tokens, Gamma_act."""
+    """Backbone, single-frame tokenizer, a bi-directional Transformer over the two frames' tokens, Gamma_act;
+    with ``idm_input="self_state"`` only an MLP from (s_t, s_t+1 - s_t) to the action bins."""
 
     def __init__(self, config: IDMConfig):
         super().__init__()
         self.config = config
+        if config.idm_input == "self_state":
+            self.state_dynamics = SelfStateInverseDynamics(
+                config.predictor_dim,
+                config.input_features[OBS_STATE].shape[0],
+                config.resolved_action_dim,
+                config.num_action_bins,
+                config.obs_head_hidden_dim,
+                config.obs_head_layers,
+            )
+            return
+        self.state_dynamics = None
         self.backbone = make_backbone(config)
         self.tokenizer = make_tokenizer(config, self.backbone.dim)
         width = config.predictor_dim
@@ -37,8 +51,11 @@ class IDM(VisualPolicyNet):
     def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
         return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
 
-    def forward(self, images: Tensor, state: Tensor) -> Tensor:
+    def forward(self, images: Tensor | None, state: Tensor) -> Tensor:
         """Frames (B, 2, 3, H, W) and states (B, 2, S) of o_t, o_{t+1} -> logits (B, 1, A, bins) of a_t."""
+        if self.state_dynamics is not None:
+            sd = self.state_dynamics
+            return sd(state[:, :1], sd.change_of(state))
         x = self.inp(self.frame_tokens(images, state)) + self.positions(2)
         z = self.transformer(rearrange(x, "b t n d -> b (t n) d"))
         return self.action_head(z[:, None])
@@ -53,6 +70,8 @@ class IDMPolicy(DiscreteActionPolicy):
 
     def get_optim_params(self) -> list[dict]:
         cfg, m = self.config, self.model
+        if m.state_dynamics is not None:
+            return self.lr_groups([("predictor", cfg.optimizer_lr_predictor, [m.state_dynamics])])
         return self.lr_groups(
             [
                 ("encoder", cfg.optimizer_lr_encoder, self.encoder_modules()),
@@ -62,6 +81,10 @@ class IDMPolicy(DiscreteActionPolicy):
 
     def action_logits(self, batch: dict[str, Tensor]) -> Tensor:
         """Logits (B, A, bins) of a_t of a preprocessed batch (two frames per sample)."""
+        if self.model.state_dynamics is not None:
+            if self.training:
+                self.model.state_dynamics.update_scale(batch[OBS_STATE])
+            return self.model(None, batch[OBS_STATE])[:, 0]
         return self.model(self.camera_frames(batch), batch[OBS_STATE])[:, 0]
 
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:

@@ -414,3 +414,27 @@ def test_jept_without_its_prompt_acts_the_same_under_any_prompt(tiny_build, tmp_
     )
     with pytest.raises(ValueError, match="jept_no_prompt has no prompt for --policy.prompt_swap_weight"):
         JEPTNoPromptConfig(prompt_swap_weight=1.0)
+
+
+def test_self_state_idm_reads_the_state_change_alone_and_fits_it(tiny_build, tmp_path):
+    """jept_idm with idm_input=self_state: no camera model at all, the logits depend on (s_t, s_t+1) only, and a
+    few hundred steps on the tiny build's labelled transitions fit them; save and reload agree."""
+    policy, batch = build(tiny_build, IDMConfig, idm_input="self_state")
+    assert not hasattr(policy.model, "backbone") and policy.model.state_dynamics is not None
+    other_frames = {**batch, "observation.image": torch.rand_like(batch["observation.image"])}
+    policy.eval()
+    torch.testing.assert_close(policy.action_logits(other_frames), policy.action_logits(batch))
+    policy.train()
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    first = None
+    for _ in range(200):
+        loss, _ = policy.forward(batch)
+        first = first if first is not None else loss.item()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert loss.item() < 0.3 * first
+    policy.eval()
+    policy.save_pretrained(tmp_path)
+    reloaded = IDMPolicy.from_pretrained(tmp_path).eval()
+    torch.testing.assert_close(reloaded.action_logits(batch), policy.action_logits(batch))

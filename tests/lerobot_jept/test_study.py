@@ -439,7 +439,10 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
             "labelled",
             "mix",
         )  # the videos are the only difference
-        assert {"DT*", "BC+IDM", "Vid2Robot-M", "JEPT (paper)", "JEPT (plus), no prompt"} <= set(methods)
+        assert {"DT*", "BC+IDM (self-state)", "Vid2Robot-M", "JEPT (paper)", "JEPT (plus), no prompt"} <= set(
+            methods
+        )
+        assert methods["BC+IDM (self-state)"].idm_args == ["--policy.idm_input=self_state"]
         assert (
             methods["JEPT (plus), no prompt"].args == ["--policy.type=jept_no_prompt"]
             and cfg.random_episodes >= 10
@@ -453,7 +456,10 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
             "--dataset.repo_id=local/transfer_a_labelled"
             in commands["pairs_a/JEPT (plus), no videos/seed1000/train"]
         )
-        assert "--dataset.repo_id=local/transfer_a_labelled" in commands["pairs_a/BC+IDM/seed1000/idm"]
+        assert (
+            "--dataset.repo_id=local/transfer_a_labelled"
+            in commands["pairs_a/BC+IDM (self-state)/seed1000/idm"]
+        )
         recipe = commands["pairs_b_mirror/JEPT (plus)/seed2000/suite"]
         assert (
             "--n_episodes=20" in recipe
