@@ -42,6 +42,7 @@ class ScreenConfig:
     arms: dict[str, list[str]] = field(default_factory=dict)  # arm name -> labelled repos it is fitted on
     root: Path | None = None  # parent folder of every repo (default: $HF_LEROBOT_HOME)
     steps: int = 1  # self-state changes after t given to the model (1 = the next frame only)
+    with_state: bool = False  # also give the model s_t itself, as JEPT's self-state inverse dynamics has it
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])  # one fitted model per seed and arm
     num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
     max_frames: int = 40_000  # labelled frames per arm, drawn at random beyond this (fit time)
@@ -53,11 +54,16 @@ class ScreenError(ValueError):
 
 
 def load_frames(
-    repo_id: str, root: Path | None, steps: int, num_bins: int, features: str = "state"
+    repo_id: str,
+    root: Path | None,
+    steps: int,
+    num_bins: int,
+    features: str = "state",
+    with_state: bool = False,
 ) -> dict[str, np.ndarray]:
-    """Every frame t with ``steps`` frames after it in its episode: state changes (or, for ``pixels``, the
-    uint8 frames o_t .. o_t+steps stacked on the channels), binned action, task (the builder's task name where
-    the repo has build metadata, else the task string)."""
+    """Every frame t with ``steps`` frames after it in its episode: state changes (preceded by s_t itself with
+    ``with_state``; or, for ``pixels``, the uint8 frames o_t .. o_t+steps stacked on the channels), binned
+    action, task (the builder's task name where the repo has build metadata, else the task string)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
@@ -88,7 +94,8 @@ def load_frames(
             inputs += [images[t : t + steps + 1].reshape(-1, *images.shape[2:]) for t in starts]
         else:
             delta = np.diff(state[rows], axis=0)
-            inputs += [delta[t : t + steps].reshape(-1) for t in starts]
+            own = state[rows] if with_state else np.zeros((len(rows), 0), state.dtype)
+            inputs += [np.concatenate([own[t], delta[t : t + steps].reshape(-1)]) for t in starts]
         for t in starts:
             labels.append(to_bin_indices(action[rows[t]], num_bins))
             frame_tasks.append(task_of[int(task_index[rows[t]])])
@@ -173,12 +180,20 @@ def _lerobot_home() -> Path:
 
 def screen(cfg: ScreenConfig) -> dict:
     """Fit every arm once per seed and score it on the probe repo; returns the per-task and summary results."""
-    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins)
+    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins, with_state=cfg.with_state)
     split = probe_split(cfg)
     rng = np.random.default_rng(0)
-    results: dict = {"probe_repo_id": cfg.probe_repo_id, "steps": cfg.steps, "seeds": cfg.seeds, "arms": {}}
+    results: dict = {
+        "probe_repo_id": cfg.probe_repo_id,
+        "steps": cfg.steps,
+        "with_state": cfg.with_state,
+        "seeds": cfg.seeds,
+        "arms": {},
+    }
     for arm, repos in cfg.arms.items():
-        train = concat_frames([load_frames(r, cfg.root, cfg.steps, cfg.num_bins) for r in repos])
+        train = concat_frames(
+            [load_frames(r, cfg.root, cfg.steps, cfg.num_bins, with_state=cfg.with_state) for r in repos]
+        )
         if len(train["x"]) > cfg.max_frames:
             keep = rng.choice(len(train["x"]), cfg.max_frames, replace=False)
             train = {key: value[keep] for key, value in train.items()}
@@ -218,7 +233,8 @@ def markdown(results: dict) -> str:
     arms = list(results["arms"])
     first = results["arms"][arms[0]]["per_task"]
     lines = [
-        f"Inverse dynamics on the next {results['steps']} self-state change(s), fitted per arm on its labelled "
+        f"Inverse dynamics on the next {results['steps']} self-state change(s)"
+        f"{' and s_t' if results.get('with_state') else ''}, fitted per arm on its labelled "
         f"frames, scored on {results['probe_repo_id']}; whole-action accuracy, mean [95% interval] over seeds "
         f"{results['seeds']} (share of frames whose action the arm's labels contain).",
         "",

@@ -102,6 +102,9 @@ def test_screen_refuses_unlabelled_repos_and_missing_arms(play_build, tmp_path):
         main(["--probe_repo_id=test/play_probe"])
     frames = load_frames("test/play_play", None, steps=2, num_bins=7)
     assert frames["x"].shape[1] == 2 * STATE_DIM  # the next two self-state changes
+    with_state = load_frames("test/play_play", None, steps=2, num_bins=7, with_state=True)
+    assert with_state["x"].shape[1] == 3 * STATE_DIM  # s_t, then the two changes
+    np.testing.assert_array_equal(with_state["x"][:, STATE_DIM:], frames["x"])
 
 
 def test_play_flag_is_checked():

@@ -89,11 +89,24 @@ def test_same_seed_same_episode():
 EXPERT_CASES = [(arm, m) for m in ("lift", "stack", "square", "can") for arm in sorted(ARMS)]
 
 
+@pytest.fixture(scope="module")
+def expert_outcomes() -> dict[str, list[bool]]:
+    """Every (arm, manipulation) expert on seeds 0-9, two tasks at a time (as ``expert_rates --num_workers=2``)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from dataset_builders.record import worker_init
+
+    tasks = [f"{arm}-{m}" for arm, m in EXPERT_CASES]
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn"), initializer=worker_init) as pool:
+        return dict(zip(tasks, pool.map(expert_successes, tasks, [range(10)] * len(tasks)), strict=True))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("arm, manipulation", EXPERT_CASES)
-def test_expert_succeeds_on_every_arm(arm, manipulation):
+def test_expert_succeeds_on_every_arm(expert_outcomes, arm, manipulation):
     """Scripted experts with 7-bin actions, on the arm that records the prompts: >= 90% of seeded episodes."""
-    successes = sum(expert_successes(f"{arm}-{manipulation}", range(10)))
+    successes = sum(expert_outcomes[f"{arm}-{manipulation}"])
     assert successes >= 9, f"{arm}-{manipulation}: {successes}/10"
 
 
