@@ -101,6 +101,28 @@ def test_plan_runs_the_real_entry_points_in_order(tmp_path):
     assert list(compare_runs) == ["JEPT", "BC+IDM"] and len(compare_runs["JEPT"]) == 2
 
 
+def test_play_episodes_join_the_labelled_frames_of_the_no_video_arm(tmp_path):
+    """With play episodes, `labelled` data (and BC+IDM's inverse dynamics) train on _demo + _play, mixed once
+    per split by jept-mix; without, on _demo."""
+    twin = MethodSpec(
+        "J0", config=str(CONFIGS / "train_jept_small_cpu.json"), data="labelled", eval_episodes=3
+    )
+    cfg = study(tmp_path, build=BuildSpec(play_episodes_per_task=2), methods=[*study(tmp_path).methods, twin])
+    commands = {s.key: s.command for s in plan(cfg)}
+    assert "--play_episodes_per_task=2" in commands["s/build"]
+    mix = commands["s/labelled"]
+    assert Path(mix[0]).name == "jept-mix" and "--demo_repo_ids=[test/x_demo, test/x_play]" in mix
+    assert "--output_repo_id=test/x_labelled" in mix
+    assert "--dataset.repo_id=test/x_labelled" in commands["s/J0/seed1/train"]
+    assert "--dataset.repo_id=test/x_labelled" in commands["s/BC+IDM/seed1/idm"]
+    assert (
+        "--n_episodes=3" in commands["s/J0/seed1/suite"]
+        and "--n_episodes=10" in commands["s/JEPT/seed1/suite"]
+    )
+    plain = {s.key: s.command for s in plan(study(tmp_path, methods=[twin]))}
+    assert "s/labelled" not in plain and "--dataset.repo_id=test/x_demo" in plain["s/J0/seed1/train"]
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
@@ -430,7 +452,7 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         a, b = cfg.splits
         assert (a.demo_tasks, a.video_tasks) == (b.video_tasks, b.demo_tasks) and len(a.video_tasks) == 4
         assert {t.split("-")[0] for t in a.video_tasks} == {"window", "door", "drawer", "faucet"}
-        assert cfg.build.play_episodes_per_task > 0 and cfg.test.method == "JEPT (plus)"
+        assert cfg.test.method == "JEPT (plus)" and cfg.build.args == ["--expert_random_prob=0.15"]
         methods = {m.name: m for m in cfg.methods}
         twin = methods[cfg.test.baseline]
         assert (twin.config, twin.args, twin.data, methods[cfg.test.method].data) == (
@@ -448,18 +470,12 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
             and cfg.random_episodes >= 10
         )
         commands = {s.key: s.command for s in steps}
-        assert "--play_episodes_per_task=10" in commands["pairs_a/build"]
-        assert (
-            "--demo_repo_ids=[local/transfer_a_demo, local/transfer_a_play]" in commands["pairs_a/labelled"]
-        )
-        assert (
-            "--dataset.repo_id=local/transfer_a_labelled"
-            in commands["pairs_a/JEPT (plus), no videos/seed1000/train"]
-        )
-        assert (
-            "--dataset.repo_id=local/transfer_a_labelled"
-            in commands["pairs_a/BC+IDM (self-state)/seed1000/idm"]
-        )
+        # no play episodes (jept-screen: they lower the video-only tasks' inverse dynamics): labelled = _demo
+        assert "pairs_a/labelled" not in commands and cfg.build.play_episodes_per_task == 0
+        twin_train = commands["pairs_a/JEPT (plus), no videos/seed1000/train"]
+        assert "--dataset.repo_id=local/transfer_pairs_a_demo" in twin_train
+        idm_train = commands["pairs_a/BC+IDM (self-state)/seed1000/idm"]
+        assert "--dataset.repo_id=local/transfer_pairs_a_demo" in idm_train
         recipe = commands["pairs_b_mirror/JEPT (plus)/seed2000/suite"]
         assert (
             "--n_episodes=20" in recipe
