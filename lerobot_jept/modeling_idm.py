@@ -7,13 +7,13 @@ from lerobot.utils.constants import OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_jept.components.attention import SelfAttentionStack, StepPositions
-from lerobot_jept.components.predictor import SelfStateInverseDynamics
 from lerobot_jept.configuration_idm import IDMConfig
 from lerobot_jept.policy_base import (
     DiscreteActionPolicy,
     VisualPolicyNet,
     make_action_head,
     make_backbone,
+    make_state_inverse_dynamics,
     make_tokenizer,
     transformer_kwargs,
 )
@@ -27,14 +27,7 @@ class IDM(VisualPolicyNet):
         super().__init__()
         self.config = config
         if config.idm_input == "self_state":
-            self.state_dynamics = SelfStateInverseDynamics(
-                config.predictor_dim,
-                config.input_features[OBS_STATE].shape[0],
-                config.resolved_action_dim,
-                config.num_action_bins,
-                config.obs_head_hidden_dim,
-                config.obs_head_layers,
-            )
+            self.state_dynamics = make_state_inverse_dynamics(config)
             return
         self.state_dynamics = None
         self.backbone = make_backbone(config)

@@ -20,7 +20,7 @@ from torch import Tensor, nn
 
 from lerobot_jept.components.alignment import PromptAlignment
 from lerobot_jept.components.encoders import JointEmbeddingEncoder
-from lerobot_jept.components.predictor import CausalPredictor, ObservationHead, SelfStateInverseDynamics
+from lerobot_jept.components.predictor import CausalPredictor, ObservationHead
 from lerobot_jept.configuration_jept import JEPTConfig
 from lerobot_jept.policy_base import (
     IGNORE_INDEX,
@@ -33,6 +33,7 @@ from lerobot_jept.policy_base import (
     make_action_head,
     make_backbone,
     make_prompt_encoder,
+    make_state_inverse_dynamics,
     make_tokenizer,
     transformer_kwargs,
 )
@@ -95,14 +96,7 @@ class JEPT(VisualPolicyNet):
         # Gamma_act: on the h_{t+1} tokens' hidden states (the paper), or the self-state's inverse dynamics.
         self.action_head, self.state_dynamics = None, None
         if config.idm_input == "self_state":
-            self.state_dynamics = SelfStateInverseDynamics(
-                config.predictor_dim,
-                config.input_features[OBS_STATE].shape[0],
-                config.resolved_action_dim,
-                config.num_action_bins,
-                config.obs_head_hidden_dim,
-                config.obs_head_layers,
-            )
+            self.state_dynamics = make_state_inverse_dynamics(config)
         else:
             self.action_head = make_action_head(config, config.predictor_dim)
 

@@ -20,7 +20,7 @@ from lerobot_jept.components.attention import CrossAttentionBlock
 from lerobot_jept.components.backbone import SpatialBackbone
 from lerobot_jept.components.encoders import ObservationTokenizer, PromptVideoEncoder
 from lerobot_jept.components.perceiver import PerceiverIO
-from lerobot_jept.components.predictor import ActionHead
+from lerobot_jept.components.predictor import ActionHead, SelfStateInverseDynamics
 from lerobot_jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.discretization import bin_centres
 from lerobot_jept.envs.rendering import INSTALL
@@ -114,6 +114,18 @@ def make_action_head(config: JEPTConfig, width: int) -> ActionHead:
         heads=config.action_head_heads,
         layers=config.action_head_layers,
         ff_dim=config.action_head_ff_dim,
+    )
+
+
+def make_state_inverse_dynamics(config: JEPTConfig) -> SelfStateInverseDynamics:
+    """The inverse dynamics on the self-state and its change (``idm_input="self_state"``)."""
+    return SelfStateInverseDynamics(
+        config.predictor_dim,
+        config.input_features[OBS_STATE].shape[0],
+        config.resolved_action_dim,
+        config.num_action_bins,
+        config.obs_head_hidden_dim,
+        config.obs_head_layers,
     )
 
 
