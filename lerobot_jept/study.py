@@ -517,52 +517,15 @@ def run_study(cfg: StudyConfig) -> Path:
 
 
 def random_floor(cfg: StudyConfig, split: SplitSpec) -> dict:
-    """Success of a policy that picks every action dimension's bin uniformly at random, per task, on the
-    evaluation seeds of the suite (``eval_seed`` + episode), under the build's protocol."""
-    from lerobot_jept.discretization import bin_centres
-    from lerobot_jept.envs.rendering import setup_offscreen_gl
+    """The random 7-bin policy's success per task of the split (:func:`lerobot_jept.suite.random_floor`) on the
+    suite's evaluation seeds, under the build's protocol."""
+    from lerobot_jept.suite import random_floor as floor_of
     from lerobot_jept.suite import read_build_metadata
 
-    setup_offscreen_gl()
     build, _ = read_build_metadata(f"{split.repo_id}_mix", None)
-    protocol = build["protocol"]
-    length = cfg.eval_episode_length or protocol["max_episode_steps"]
-    rng = np.random.default_rng(cfg.eval_seed)
-    per_task = {}
     tasks = [*split.demo_tasks, *split.video_tasks, *split.unseen_tasks]
-    for task in tqdm(tasks, desc="random floor", unit="task", leave=False):
-        env = make_env(cfg.simulator, task, protocol, length)
-        low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
-        centres = np.asarray(bin_centres(protocol["action_bins"], low, high), dtype=np.float32)
-        successes = []
-        for episode in range(cfg.random_episodes):
-            env.reset(seed=cfg.eval_seed + episode)
-            success = False
-            while True:
-                action = centres[rng.integers(len(centres), size=env.action_space.shape)]
-                _, _, terminated, truncated, info = env.step(action)
-                success = success or bool(info.get("is_success", False))
-                if terminated or truncated:
-                    break
-            successes.append(success)
-        env.close()
-        per_task[task] = {"pc_success": 100.0 * float(np.mean(successes)), "successes": successes}
+    per_task = floor_of(build, tasks, cfg.random_episodes, cfg.eval_seed, cfg.eval_episode_length)
     return {"episodes": cfg.random_episodes, "per_task": per_task}
-
-
-def make_env(simulator: str, task: str, protocol: dict, length: int):
-    if simulator == "metaworld":
-        from lerobot_jept.envs.metaworld import JeptMetaworldEnv
-
-        return JeptMetaworldEnv(
-            task,
-            image_size=protocol["image_size"],
-            action_repeat=protocol["action_repeat"],
-            max_episode_steps=length,
-        )
-    from lerobot_jept.envs.robosuite import JeptRobosuiteEnv
-
-    return JeptRobosuiteEnv(task, image_size=protocol["image_size"], max_episode_steps=length)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -99,6 +99,9 @@ class SuiteConfig:
     # scene, e.g. window-open's prompt in window-close's scene): if the prompt, not the scene, drives the
     # behaviour, the intended task's success falls to its floor. Written as the row "T_vid, scene-mate's prompt".
     scene_mate_prompts: bool = False
+    # Episodes per task of the random 7-bin policy on the same env seeds (the floor each row is read against),
+    # printed beside the rows; 0 skips it.
+    floor_episodes: int = 0
 
 
 class SuiteError(ValueError):
@@ -159,12 +162,20 @@ def summarise(split: dict[str, list[str]], success: dict[str, float]) -> dict[st
 
 
 def markdown(
-    rows: dict[str, float], per_task: dict[str, dict], paper: bool, policy_type: str = "jept"
+    rows: dict[str, float],
+    per_task: dict[str, dict],
+    paper: bool,
+    policy_type: str = "jept",
+    floor: dict[str, float] | None = None,
 ) -> str:
-    header = f"| Task | {policy_type} (this run) |" + (" JEPT (paper) |" if paper else "")
-    lines = [header, "|---|---:|" + ("---:|" if paper else "")]
+    header = f"| Task | {policy_type} (this run) |" + (" random 7-bin |" if floor else "")
+    header += " JEPT (paper) |" if paper else ""
+    lines = [header, "|---|---:|" + ("---:|" if floor else "") + ("---:|" if paper else "")]
     for name, value in rows.items():
         cell = f"| {name} | {value:.1f} |"
+        if floor:
+            shown = floor.get(name, float("nan"))
+            cell += " - |" if shown != shown else f" {shown:.1f} |"
         lines.append(cell + (f" {PAPER_TABLE1[name]:.1f} |" if paper else ""))
     lines += ["", "| Task | Split | Success (%) | Episodes |", "|---|---|---:|---:|"]
     for task, r in per_task.items():
@@ -193,6 +204,55 @@ def bar_chart(rows: dict[str, float], path: Path, paper: bool, title: str) -> No
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def random_floor(build: dict, tasks: list[str], episodes: int, seed: int, length: int | None = None) -> dict:
+    """Success of a policy that picks every action dimension's bin uniformly at random, per task, on the
+    evaluation seeds ``seed`` + episode (those of ``eval_main`` with ``--seed``), under the build's protocol
+    (``length``: the episode length, default the build's). Returns {task: {pc_success, successes}}."""
+    import numpy as np
+
+    from lerobot_jept.discretization import bin_centres
+    from lerobot_jept.envs.rendering import setup_offscreen_gl
+
+    setup_offscreen_gl()
+    protocol = build["protocol"]
+    length = length or protocol["max_episode_steps"]
+    rng = np.random.default_rng(seed)
+    per_task = {}
+    for task in tqdm(tasks, desc="random floor", unit="task", leave=False):
+        env = make_env(protocol["simulator"], task, protocol, length)
+        low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
+        centres = np.asarray(bin_centres(protocol["action_bins"], low, high), dtype=np.float32)
+        successes = []
+        for episode in range(episodes):
+            env.reset(seed=seed + episode)
+            success = False
+            while True:
+                action = centres[rng.integers(len(centres), size=env.action_space.shape)]
+                _, _, terminated, truncated, info = env.step(action)
+                success = success or bool(info.get("is_success", False))
+                if terminated or truncated:
+                    break
+            successes.append(success)
+        env.close()
+        per_task[task] = {"pc_success": 100.0 * float(np.mean(successes)), "successes": successes}
+    return per_task
+
+
+def make_env(simulator: str, task: str, protocol: dict, length: int):
+    if simulator == "metaworld":
+        from lerobot_jept.envs.metaworld import JeptMetaworldEnv
+
+        return JeptMetaworldEnv(
+            task,
+            image_size=protocol["image_size"],
+            action_repeat=protocol["action_repeat"],
+            max_episode_steps=length,
+        )
+    from lerobot_jept.envs.robosuite import JeptRobosuiteEnv
+
+    return JeptRobosuiteEnv(task, image_size=protocol["image_size"], max_episode_steps=length)
 
 
 def evaluate_task(
@@ -303,7 +363,21 @@ def run_suite(cfg: SuiteConfig) -> dict:
         "table": rows,
         "paper_table": PAPER_TABLE1 if paper else None,
     }
-    table = markdown(rows, per_task, paper, policy_type)
+    floor_rows = None
+    if cfg.floor_episodes > 0:
+        floor = random_floor(
+            build,
+            [t for t, _, mate in runs if mate is None],
+            cfg.floor_episodes,
+            cfg.seed,
+            cfg.episode_length,
+        )
+        results["random_floor"] = floor
+        floor_rows = summarise(split, {t: r["pc_success"] for t, r in floor.items()})
+        if SCENE_MATE_ROW in rows:  # under another prompt, the floor is that of the task itself
+            floor_rows[SCENE_MATE_ROW] = floor_rows.get("T_vid", float("nan"))
+        results["random_floor_table"] = floor_rows
+    table = markdown(rows, per_task, paper, policy_type, floor_rows)
     if probe_repo_id:
         from lerobot_jept.prompt_probe import ProbeConfig, run_probe
         from lerobot_jept.prompt_probe import markdown as probe_markdown

@@ -5,7 +5,8 @@ can be re-run by hand:
 1. `jept-build-metaworld`: a tiny Meta-World mixture (2 demo tasks, 1 video-only task, 1 unseen task, 96 px)
    into $HF_LEROBOT_HOME;
 2. `lerobot-train --policy.type=jept` (through examples/configs/train_jept_small_cpu.json) on the mix repo;
-3. `jept-eval-suite`: LeRobot's eval on every task of the split, printed in the paper's Table 1 layout.
+3. `jept-eval-suite`: LeRobot's eval on every task of the split, printed in the paper's Table 1 layout with the
+   random 7-bin policy's success on the same env seeds beside each row (the floor).
 Sizes come from the environment: JEPT_DEMO_STEPS (training steps), JEPT_DEMO_EPISODES (per task).
 """
 
@@ -66,6 +67,7 @@ def main() -> None:
             f"--dataset.repo_id={REPO_ID}_mix",
             f"--n_episodes={EPISODES}",
             f"--batch_size={EPISODES}",
+            f"--floor_episodes={EPISODES}",
             f"--output_dir={OUTPUT}/suite",
         ]
     )

@@ -114,6 +114,17 @@ def test_play_flag_is_checked():
         build(MetaworldBuildConfig(repo_id="test/bad_play", **{**PLAY, "play_episodes_per_task": -1}), SIM)
 
 
+def test_the_suite_prints_the_floor_beside_each_row():
+    from lerobot_jept.suite import markdown
+
+    per_task = {"b": {"split": "video", "pc_success": 40.0, "n_episodes": 10}}
+    table = markdown(
+        {"T_vid": 40.0, "Unseen average": float("nan")}, per_task, False, "jept", {"T_vid": 20.0}
+    )
+    assert "| Task | jept (this run) | random 7-bin |" in table and "| T_vid | 40.0 | 20.0 |" in table
+    assert "| Unseen average | nan | - |" in table
+
+
 def test_scene_mates_are_the_builds_other_task_of_the_scene():
     from lerobot_jept.suite import SuiteError, scene_mate_of
 
@@ -155,6 +166,7 @@ def test_jept_trains_on_a_mix_with_play_and_is_evaluated_under_the_scene_mates_p
             "--batch_size=1",
             "--episode_length=8",
             "--probe=false",
+            "--floor_episodes=2",
             f"--output_dir={tmp_path / 'suite'}",
         ],
         tmp_path,
@@ -165,3 +177,6 @@ def test_jept_trains_on_a_mix_with_play_and_is_evaluated_under_the_scene_mates_p
     assert mate["prompt_task"] == "window-open-v3" and mate["n_episodes"] == 1
     assert "T_vid, scene-mate's prompt" in results["table"] and "T_demo" not in results["table"]
     assert (tmp_path / "suite/tasks/window-close-v3.prompt_window-open-v3/eval_info.json").is_file()
+    floor = results["random_floor"]["window-close-v3"]
+    assert len(floor["successes"]) == 2 and set(results["random_floor_table"]) >= {"T_vid"}
+    assert "random 7-bin |" in (tmp_path / "suite/results.md").read_text()
