@@ -8,8 +8,9 @@
 - ``train_step_vs_act``: one training step (forward, backward, AdamW) of the small jept configuration / one of
   LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
   size. Goal <= 2.
-- ``train_step_vs_jept_<type>``: one training step of each baseline (``dt_star``, ``vid2robot``, ``idm``, the
-  policy types ``jept_<type>``) in its small configuration / one of the small jept configuration, on batches of
+- ``train_step_vs_jept_<type>``: one training step of each baseline (``dt_star``, ``vid2robot``, ``idm``,
+  ``idm_self_state`` (``jept_idm --policy.idm_input=self_state``), ``no_prompt``: the policy types ``jept_<type>``)
+  in its small configuration / one of the small jept configuration, on batches of
   the same tiny build, same batch size (each policy takes the frames its delta indices ask for), measured in
   the same run. No goal: their costs.
 """
@@ -27,7 +28,14 @@ os.environ.setdefault("HF_LEROBOT_HOME", tempfile.mkdtemp(prefix="jept_bench_hom
 import torch  # noqa: E402
 from lerobot.configs.types import FeatureType, PolicyFeature  # noqa: E402
 
-from lerobot_jept import DTStarConfig, IDMConfig, JEPTConfig, JEPTPolicy, Vid2RobotConfig  # noqa: E402
+from lerobot_jept import (  # noqa: E402
+    DTStarConfig,
+    IDMConfig,
+    JEPTConfig,
+    JEPTNoPromptConfig,
+    JEPTPolicy,
+    Vid2RobotConfig,
+)
 from lerobot_jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
 
 
@@ -163,9 +171,15 @@ def main() -> None:
     print(f"train_step_act_s: {act_s:.3f}")
     print(f"train_step_vs_act: {jept_s / act_s:.2f}")
     small = dict(device="cpu", prompt_repo_id=f"{repo}_prompts")
-    for config_cls in (DTStarConfig, Vid2RobotConfig, IDMConfig):
-        baseline_s = train_step_time(config_cls.small(**small), repo, args.batch_size, args.repeats)
-        name = config_cls.small(**small).type.removeprefix("jept_")
+    baselines = {
+        "dt_star": DTStarConfig.small(**small),
+        "vid2robot": Vid2RobotConfig.small(**small),
+        "idm": IDMConfig.small(**small),
+        "idm_self_state": IDMConfig.small(**small, idm_input="self_state"),
+        "no_prompt": JEPTNoPromptConfig.small(**small, prompt_warmup_steps=0, phase_schedule="joint"),
+    }
+    for name, config in baselines.items():
+        baseline_s = train_step_time(config, repo, args.batch_size, args.repeats)
         print(f"train_step_{name}_s: {baseline_s:.3f}")
         print(f"train_step_vs_jept_{name}: {baseline_s / jept_s:.2f}")
 
