@@ -15,10 +15,13 @@ instead of taking the whole plugin down.
 
 import importlib
 import importlib.abc
+import json
 import logging
+import os
 import sys
 import warnings
 from collections.abc import Callable
+from pathlib import Path
 
 POLICY_CONFIG_MODULES = (
     "lerobot_jept.configuration_jept",
@@ -120,3 +123,50 @@ def register() -> None:
     """Register the policy types, their processor steps and the env types with LeRobot (see the module doc)."""
     after_import("lerobot.configs.policies", register_policies)
     after_import("lerobot.envs.configs", register_envs)
+    try:
+        message = mix_warning(sys.argv)
+    except Exception:  # a check that cannot read its inputs stays silent: it must never break a command
+        message = None
+    if message:
+        warnings.warn(message, stacklevel=2)
+
+
+MIX_MARKER = "observation.action_labelled"  # lerobot_jept.envs.spec.ACTION_LABELLED, without importing it
+
+
+def mix_warning(argv: list[str]) -> str | None:
+    """``lerobot-train`` of a policy type this package does not own on a mix of labelled and action-free
+    episodes (a builder's or ``jept-mix``'s mix with video tasks): the warning to give, else None. Such a policy
+    would learn the action-free frames' neutral actions as real ones. Reads the command line and the dataset's
+    ``meta/info.json`` and ``meta/jept_build.json`` only (local files; nothing is imported)."""
+    if not argv or "lerobot_train" not in Path(argv[0]).name.replace("-", "_"):
+        return None
+    args = dict(a[2:].split("=", 1) for a in argv[1:] if a.startswith("--") and "=" in a)
+    config = {}
+    if "config_path" in args and Path(args["config_path"]).is_file():
+        config = json.loads(Path(args["config_path"]).read_text())
+    policy = config.get("policy") or {}
+    if "policy.path" in args and (Path(args["policy.path"]) / "config.json").is_file():
+        policy = json.loads((Path(args["policy.path"]) / "config.json").read_text())
+    policy_type = args.get("policy.type", policy.get("type"))
+    if not policy_type or policy_type.startswith("jept") or policy_type in POLICY_TYPE_ALIASES:
+        return None
+    dataset = config.get("dataset") or {}
+    repo_id = args.get("dataset.repo_id", dataset.get("repo_id"))
+    root = args.get("dataset.root", dataset.get("root"))
+    if not repo_id:
+        return None
+    home = Path(os.getenv("HF_LEROBOT_HOME", Path(os.getenv("HF_HOME", "~/.cache/huggingface")) / "lerobot"))
+    meta = (Path(root).expanduser() if root else home.expanduser() / repo_id) / "meta"
+    if not (meta / "info.json").is_file() or not (meta / "jept_build.json").is_file():
+        return None
+    build = json.loads((meta / "jept_build.json").read_text())
+    mixed = build.get("repos", {}).get("mix") == repo_id and build.get("split", {}).get("video")
+    if not mixed or MIX_MARKER not in json.loads((meta / "info.json").read_text()).get("features", {}):
+        return None
+    return (
+        f"{repo_id} is a mix of labelled and action-free episodes ({MIX_MARKER}); --policy.type={policy_type} "
+        "does not read that marker and would learn the action-free frames' neutral actions as real ones. "
+        "Train it on the labelled repo alone (a build's ORG/NAME_demo, or jept-mix with --demo_repo_ids only), "
+        "or train a policy that learns from action-free frames (--policy.type=jept)."
+    )

@@ -1,6 +1,7 @@
 """The package as a LeRobot user gets it: a wheel installed with plain uv into a new Python 3.12 environment
 that holds only LeRobot, from outside the checkout (so no setting of this repository applies)."""
 
+import json
 import os
 import shutil
 import subprocess
@@ -101,3 +102,24 @@ def test_a_policy_type_taken_by_another_package_does_not_take_the_plugin_down(tm
     )
     proc = run([sys.executable, "-W", "always", "-c", code], tmp_path)
     assert "--policy.type=jept_idm" in proc.stderr
+
+
+def test_training_another_policy_type_on_a_mix_warns(tiny_build, tmp_path):
+    """lerobot-train of a policy type that cannot read the mix's label marker (ACT, diffusion, ...) on a _mix
+    repo warns with the fix; on the labelled repo, with a jept type, or in another command, it says nothing."""
+    from lerobot_jept.registration import mix_warning
+
+    train = "/venv/bin/lerobot-train"
+    message = mix_warning([train, "--policy.type=act", "--dataset.repo_id=test/mw_tiny_mix"])
+    assert "test/mw_tiny_mix is a mix" in message and "--policy.type=act" in message and "_demo" in message
+    assert mix_warning([train, "--policy.type=act", "--dataset.repo_id=test/mw_tiny_demo"]) is None
+    assert mix_warning([train, "--policy.type=jept", "--dataset.repo_id=test/mw_tiny_mix"]) is None
+    assert (
+        mix_warning(["/venv/bin/lerobot-eval", "--policy.type=act", "--dataset.repo_id=test/mw_tiny_mix"])
+        is None
+    )
+    config = tmp_path / "train.json"  # the type and the repo from a config file
+    config.write_text(
+        json.dumps({"policy": {"type": "diffusion"}, "dataset": {"repo_id": "test/mw_tiny_mix"}})
+    )
+    assert "--policy.type=diffusion" in mix_warning([train, f"--config_path={config}"])
