@@ -123,3 +123,20 @@ def test_training_another_policy_type_on_a_mix_warns(tiny_build, tmp_path):
         json.dumps({"policy": {"type": "diffusion"}, "dataset": {"repo_id": "test/mw_tiny_mix"}})
     )
     assert "--policy.type=diffusion" in mix_warning([train, f"--config_path={config}"])
+
+
+@pytest.mark.slow
+def test_lerobot_train_of_act_on_a_mix_prints_the_warning(tiny_build, tmp_path):
+    """The warning above, from a real lerobot-train of LeRobot's ACT on the tiny mix (one step)."""
+    lerobot_train = Path(sys.executable).parent / "lerobot-train"
+    args = ["--policy.type=act", "--policy.pretrained_backbone_weights=null", "--policy.push_to_hub=false"]
+    args += ["--policy.device=cpu", "--steps=1", "--batch_size=2", "--num_workers=0"]
+    proc = subprocess.run(
+        [lerobot_train, "--dataset.repo_id=test/mw_tiny_mix", *args, f"--output_dir={tmp_path / 'act'}"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=os.environ.copy(),
+    )
+    assert "test/mw_tiny_mix is a mix of labelled and action-free episodes" in proc.stderr
+    assert "--policy.type=act does not read that marker" in proc.stderr
