@@ -5,6 +5,7 @@ folder that replaces it by a rename, so a repo is always absent or complete."""
 import json
 import os
 import shutil
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from dataset_builders.config import (
     task_description,
 )
 from dataset_builders.plan import BuildPaths, Shard
+from dataset_builders.publish import push_repos
 from lerobot_jept.mixing import MIX_FORMAT
 
 
@@ -187,3 +189,22 @@ def format_summary(summary: dict) -> str:
     lines.append(f"expert success (kept / attempted): {rates}")
     lines.append(f"time: {summary['total_seconds']:.1f} s (recording {summary['record_seconds']:.1f} s)")
     return "\n".join(lines)
+
+
+def finish(
+    cfg: BuildConfig,
+    sim: Simulator,
+    paths: BuildPaths,
+    shards: list[Shard],
+    record_seconds: float,
+    start: float | None = None,
+) -> dict:
+    """Once every shard is recorded: assemble the repos, print the summary, push when asked."""
+    start = time.perf_counter() if start is None else start
+    record = json.loads((paths.work / BUILD_FILE).read_text())
+    assembled = assemble(cfg, sim, paths, record, shards)
+    summary = summarise(paths, assembled, record_seconds, time.perf_counter() - start)
+    print(format_summary(summary))
+    if cfg.push_to_hub:
+        push_repos(paths, assembled["metadata"], private=cfg.private)
+    return summary

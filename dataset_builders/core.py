@@ -39,7 +39,7 @@ stages, one module each, run by :func:`build`:
 import json
 import time
 
-from dataset_builders.assemble import assemble, format_summary, recover_dir, summarise
+from dataset_builders.assemble import finish, recover_dir
 from dataset_builders.config import (  # noqa: F401  (the builder's public names, importable from core)
     BUILD_FILE,
     ROLES,
@@ -50,7 +50,7 @@ from dataset_builders.config import (  # noqa: F401  (the builder's public names
 )
 from dataset_builders.executors import record_datatrove_local, submit_slurm
 from dataset_builders.plan import BuildPaths, Shard, check_existing, plan_shards  # noqa: F401
-from dataset_builders.publish import push_repos
+from dataset_builders.publish import push_repos  # noqa: F401
 from dataset_builders.record import (  # noqa: F401
     _RENDERER,
     close_renderer,
@@ -91,22 +91,3 @@ def build(cfg: BuildConfig, sim: Simulator) -> dict:
     else:
         record_seconds = record_missing(sim, cfg, paths, shards)
     return finish(cfg, sim, paths, shards, record_seconds, start)
-
-
-def finish(
-    cfg: BuildConfig,
-    sim: Simulator,
-    paths: BuildPaths,
-    shards: list[Shard],
-    record_seconds: float,
-    start: float | None = None,
-) -> dict:
-    """Once every shard is recorded: assemble the repos, print the summary, push when asked."""
-    start = time.perf_counter() if start is None else start
-    record = json.loads((paths.work / BUILD_FILE).read_text())
-    assembled = assemble(cfg, sim, paths, record, shards)
-    summary = summarise(paths, assembled, record_seconds, time.perf_counter() - start)
-    print(format_summary(summary))
-    if cfg.push_to_hub:
-        push_repos(paths, assembled["metadata"], private=cfg.private)
-    return summary

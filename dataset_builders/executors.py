@@ -66,7 +66,7 @@ class AssembleBuild(BuildStep):
     name = "assemble repos"
 
     def run(self, data=None, rank: int = 0, world_size: int = 1):
-        from dataset_builders.core import finish
+        from dataset_builders.assemble import finish
 
         paths = BuildPaths(self.cfg)
         missing = [s.name for s in plan_shards(self.cfg) if not paths.shard(s).exists()]

@@ -41,8 +41,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_jept.cli_args import DatasetArg, PolicyArg
 from lerobot_jept.prompts import subsample_indices
-from lerobot_jept.suite import DatasetArg, PolicyArg
 
 
 @dataclass

@@ -20,9 +20,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_jept.cli_args import DatasetArg, PolicyArg
 from lerobot_jept.envs.spec import ACTION_LABELLED
 from lerobot_jept.mixing import fill_episode_stats, labelled_mask, push_dataset
-from lerobot_jept.suite import BUILD_FILE, DatasetArg, PolicyArg
+from lerobot_jept.suite import BUILD_FILE
 
 RELABEL_FILE = "meta/jept_relabel.json"
 PSEUDO_LABEL = "pseudo_label"

@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_jept.cli_args import DatasetArg, PolicyArg
 from lerobot_jept.prompt_probe import ProbeConfig, ProbeError, load_labelled, prompt_embeddings, task_names
-from lerobot_jept.suite import DatasetArg, PolicyArg
 
 SPLIT_MARKERS = {"demo": "o", "video": "^", "unseen": "s"}
 

@@ -132,8 +132,8 @@ def embedding_frames(
     from lerobot.utils.constants import ACTION, OBS_STATE
 
     import lerobot_policy_jept  # noqa: F401  (registers the policy types)
+    from lerobot_jept.cli_args import DatasetArg, PolicyArg
     from lerobot_jept.prompt_probe import ProbeConfig, load_labelled, probe_frames
-    from lerobot_jept.suite import DatasetArg, PolicyArg
 
     probe_cfg = ProbeConfig(
         policy=PolicyArg(path=policy_path),
