@@ -890,7 +890,7 @@ def preregistered_test(cfg: StudyConfig) -> tuple[list[str], dict]:
 
 def success_table(comparison: dict, floor: dict | None, split: SplitSpec) -> list[str]:
     """The comparison's rows (mean [interval] per method, the paper's columns) with the random floor."""
-    from lerobot_jept.suite import summarise
+    from lerobot_jept.suite import SCENE_MATE_ROW, summarise
 
     table, paper = comparison["table"], comparison.get("paper") or {}
     rows = list(next(iter(table.values())))
@@ -899,13 +899,14 @@ def success_table(comparison: dict, floor: dict | None, split: SplitSpec) -> lis
         floor_rows = summarise(
             comparison["split"], {t: r["pc_success"] for t, r in floor["per_task"].items()}
         )
+        floor_rows[SCENE_MATE_ROW] = floor_rows.get("T_vid", math.nan)  # another prompt, the same tasks
     header = ["Row"] + list(table) + (["Random 7-bin"] if floor else []) + [f"{m} (paper)" for m in paper]
     lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
     for row in rows:
         cells = [fmt(table[m][row]["mean"], table[m][row]["low"], table[m][row]["high"]) for m in table]
         if floor:
             cells.append(f"{floor_rows.get(row, math.nan):.1f}")
-        cells += [f"{paper[m][row]:.1f}" for m in paper]
+        cells += [f"{paper[m][row]:.1f}" if row in paper[m] else "-" for m in paper]
         lines.append(f"| {row} | " + " | ".join(cells) + " |")
     if floor:
         lines += [

@@ -249,6 +249,34 @@ def test_compare_shows_the_paper_columns_on_the_paper_split(tmp_path):
     assert "JEPT (paper)" in (tmp_path / "out/comparison.md").read_text()
 
 
+def test_compare_names_jept_columns_by_recipe_and_leaves_rows_a_method_did_not_run(tmp_path):
+    split = {k: list(v) for k, v in PAPER_SPLIT.items()}
+    outcomes = {t: [True, False] for ts in split.values() for t in ts}
+    folders = {}
+    for name, recipe in (("plus", "plus"), ("paper", "paper"), ("named", "plus")):
+        folders[name] = suite_output(tmp_path / name, split, outcomes)
+        results = json.loads((tmp_path / name / "results.json").read_text())
+        results["recipe"] = recipe
+        if name == "plus":  # this one also ran the video-only tasks under their scene-mates' prompts
+            for task in split["video"]:
+                results["per_task"][task]["scene_mate"] = {
+                    "pc_success": 10.0,
+                    "successes": [True] + [False] * 9,
+                }
+            results["table"]["T_vid, scene-mate's prompt"] = 10.0
+        (tmp_path / name / "results.json").write_text(json.dumps(results))
+    runs = {"JEPT": [folders["plus"]], "JEPT ": [folders["paper"]], "JEPT (plus), tuned": [folders["named"]]}
+    result = compare(CompareConfig(runs=runs, output_dir=tmp_path / "out"))
+    assert list(result["table"]) == ["JEPT (plus)", "JEPT  (paper)", "JEPT (plus), tuned"]
+    assert result["paper"]["JEPT (plus)"]["T_vid"] == 31.7  # the paper's JEPT column still found
+    row = "T_vid, scene-mate's prompt"
+    assert (
+        result["table"]["JEPT (plus)"][row]["mean"] == 10.0
+        and not result["table"]["JEPT  (paper)"][row]["seeds"]
+    )
+    assert f"| {row} | 10.0 [" in (tmp_path / "out/comparison.md").read_text()
+
+
 def test_compare_refuses_mismatched_or_old_outputs(tmp_path):
     a = suite_output(tmp_path / "a", {"demo": ["a"], "video": [], "unseen": []}, {"a": [True]})
     b = suite_output(tmp_path / "b", {"demo": ["b"], "video": [], "unseen": []}, {"b": [True]})
