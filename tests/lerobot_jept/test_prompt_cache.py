@@ -178,8 +178,9 @@ def test_bank_prompts_travel_as_uint8_and_give_the_float_prompts_loss(tiny_build
 
 @pytest.mark.slow  # compiling takes two to four minutes here
 def test_compiled_blocks_give_the_eager_loss_gradients_and_actions(tiny_build):
-    eager, pre, post = build_policy(tiny_build, freeze_backbone=True)
-    compiled, _, _ = build_policy(tiny_build, freeze_backbone=True, compile_model=True)
+    # the paper's recipe: the action head on the predicted h_t+1, the graphs this check was sized for
+    eager, pre, post = build_policy(tiny_build, freeze_backbone=True, recipe="paper")
+    compiled, _, _ = build_policy(tiny_build, freeze_backbone=True, compile_model=True, recipe="paper")
     compiled.load_state_dict(eager.state_dict())
     assert compiled.state_dict().keys() == eager.state_dict().keys()  # checkpoints are the eager model's
     units = {
