@@ -382,7 +382,7 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
     report = (tmp_path / "out/report.md").read_text()
     assert "| T_vid |" in report and "| BC+IDM | T_vid |" in report and "Random 7-bin" in report
     results = json.loads((out / "BC_IDM/seed1/suite/results.json").read_text())
-    assert results["policy_type"] == "dt_star" and results["prompt_probe"]["splits"]
+    assert results["policy_type"] == "jept_dt_star" and results["prompt_probe"]["splits"]
     assert (out / "training_curves.png").stat().st_size > 1000
     for figure in ("prompt_embeddings.png", "observation_embeddings.png"):  # jept-visualize, JEPT vs DT*
         assert (out / "visualize" / figure).stat().st_size > 1000 and figure in report
