@@ -164,18 +164,14 @@ def score(predicted: np.ndarray, train_labels: np.ndarray, probe: dict[str, np.n
 
 def probe_split(cfg: ScreenConfig) -> dict[str, str]:
     """Builder task name -> its split (demo / video / unseen) from the probe repo's build metadata."""
-    root = (cfg.root if cfg.root is not None else _lerobot_home()) / cfg.probe_repo_id
-    path = root / "meta/jept_build.json"
-    if not path.is_file():
+    from lerobot_jept.suite import SuiteError, read_build_metadata
+
+    root = None if cfg.root is None else str(cfg.root / cfg.probe_repo_id)
+    try:
+        build, _ = read_build_metadata(cfg.probe_repo_id, root)
+    except SuiteError:  # a repo that no builder wrote: no split to report
         return {}
-    split = json.loads(path.read_text())["split"]
-    return {task: name for name, tasks in split.items() for task in tasks}
-
-
-def _lerobot_home() -> Path:
-    from lerobot.utils.constants import HF_LEROBOT_HOME
-
-    return Path(HF_LEROBOT_HOME)
+    return {task: name for name, tasks in build["split"].items() for task in tasks}
 
 
 def screen(cfg: ScreenConfig) -> dict:
