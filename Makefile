@@ -13,6 +13,10 @@ UV := $(shell command -v uv 2>/dev/null || echo $(HOME)/.local/bin/uv)
 VENV := .venv
 RUN := MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/python
 export UV_PYTHON_DOWNLOADS := never
+# pytest workers: each runs torch on one thread (tests/conftest.py), so two keep both cores busy while one
+# waits on imports, rendering or a subprocess
+TEST_WORKERS ?= 2
+PYTEST := $(RUN) -m pytest tests -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 .PHONY: help setup system-deps demo study study-transfer test test-slow test-all lint bench clean
 
@@ -56,10 +60,10 @@ study-transfer: setup
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/jept-study --config=examples/studies/cpu_transfer.json
 
 test: lint
-	$(RUN) -m pytest tests -m "not slow" --durations=25
+	$(PYTEST) -m "not slow"
 
 test-slow: setup
-	$(RUN) -m pytest tests -m slow --durations=25
+	$(PYTEST) -m slow
 
 test-all: test test-slow
 

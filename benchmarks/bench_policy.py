@@ -9,7 +9,8 @@
   LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
   size. Goal <= 2.
 - ``train_step_vs_jept_<type>``: one training step of each baseline (``dt_star``, ``vid2robot``, ``idm``,
-  ``idm_self_state`` (``jept_idm --policy.idm_input=self_state``), ``no_prompt``: the policy types ``jept_<type>``)
+  ``idm_self_state`` (``jept_idm --policy.idm_input=self_state``), ``no_prompt``, ``lapo``: the policy types
+  ``jept_<type>``)
   in its small configuration / one of the small jept configuration, on batches of
   the same tiny build, same batch size (each policy takes the frames its delta indices ask for), measured in
   the same run. No goal: their costs.
@@ -34,6 +35,7 @@ from lerobot_jept import (  # noqa: E402
     JEPTConfig,
     JEPTNoPromptConfig,
     JEPTPolicy,
+    LAPOConfig,
     Vid2RobotConfig,
 )
 from lerobot_jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
@@ -177,6 +179,7 @@ def main() -> None:
         "idm": IDMConfig.small(**small),
         "idm_self_state": IDMConfig.small(**small, idm_input="self_state"),
         "no_prompt": JEPTNoPromptConfig.small(**small, prompt_warmup_steps=0, phase_schedule="joint"),
+        "lapo": LAPOConfig.small(**small),
     }
     for name, config in baselines.items():
         baseline_s = train_step_time(config, repo, args.batch_size, args.repeats)

@@ -1,8 +1,9 @@
 """JEPT (Joint Embedding Predictive Transformer) as a LeRobot policy plugin.
 
 ``import lerobot_policy_jept`` (what LeRobot's scripts do) registers the ``jept`` policy type and its baselines
-(``jept_dt_star``, ``jept_vid2robot``, ``jept_idm``, ``jept_no_prompt``), their processor steps and the ``jept_metaworld`` /
-``jept_robosuite`` envs, each when LeRobot loads the registry it extends (:mod:`lerobot_jept.registration`).
+(``jept_dt_star``, ``jept_vid2robot``, ``jept_idm``, ``jept_no_prompt``, ``jept_lapo``), their processor steps and
+the ``jept_metaworld`` / ``jept_robosuite`` envs, each when LeRobot loads the registry it extends
+(:mod:`lerobot_jept.registration`).
 The package-level names below load on first use, so that the dataset builders, which import
 ``lerobot_jept.envs`` in every worker process, do not pay for the model.
 """
@@ -23,6 +24,8 @@ _EXPORTS = {
     "IDMPolicy": "lerobot_jept.modeling_idm",
     "JEPTNoPromptConfig": "lerobot_jept.configuration_jept_no_prompt",
     "JEPTNoPromptPolicy": "lerobot_jept.modeling_jept_no_prompt",
+    "LAPOConfig": "lerobot_jept.configuration_lapo",
+    "LAPOPolicy": "lerobot_jept.modeling_lapo",
     "JeptMetaworldEnvConfig": "lerobot_jept.envs.configs",
     "JeptRobosuiteEnvConfig": "lerobot_jept.envs.configs",
 }

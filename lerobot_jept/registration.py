@@ -7,10 +7,10 @@ imported, and the env types when ``lerobot.envs.configs`` is; if LeRobot has imp
 ``lerobot-train`` and ``lerobot-eval`` have, that happens at once. A command that never loads a policy or an
 env (calibration, teleoperation) pays nothing, and no simulator is imported until an env is built.
 
-The policy types are namespaced (``jept``, ``jept_idm``, ``jept_dt_star``, ``jept_vid2robot``). The baselines'
-earlier bare names (``idm``, ``dt_star``, ``vid2robot``) stay as aliases, so older checkpoints and commands still
-work, but only while no other package owns them: a clash skips the alias with a warning that names the fix
-instead of taking the whole plugin down.
+The policy types are namespaced (``jept``, ``jept_idm``, ``jept_dt_star``, ``jept_vid2robot``, ``jept_no_prompt``,
+``jept_lapo``). The baselines' earlier bare names (``idm``, ``dt_star``, ``vid2robot``) stay as aliases, so older
+checkpoints and commands still work, but only while no other package owns them: a clash skips the alias with a
+warning that names the fix instead of taking the whole plugin down.
 """
 
 import importlib
@@ -29,6 +29,7 @@ POLICY_CONFIG_MODULES = (
     "lerobot_jept.configuration_dt_star",
     "lerobot_jept.configuration_vid2robot",
     "lerobot_jept.configuration_jept_no_prompt",
+    "lerobot_jept.configuration_lapo",
 )
 ENV_CONFIG_MODULE = "lerobot_jept.envs.configs"
 

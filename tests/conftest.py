@@ -10,6 +10,12 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("SVT_LOG", "1")
 os.environ["HF_LEROBOT_HOME"] = tempfile.mkdtemp(prefix="jept_lerobot_home_")
+if (
+    "PYTEST_XDIST_WORKER_COUNT" in os.environ
+):  # `pytest -n N`: share the cores instead of each taking them all
+    threads = str(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # read by torch at import, inherited by subprocesses
+        os.environ.setdefault(name, threads)
 
 import pytest  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""The paper's baselines (``jept_dt_star``, ``jept_vid2robot``, ``jept_idm`` + ``jept-relabel``) and ``jept-compare``, on the
+"""The baselines (``jept_dt_star``, ``jept_vid2robot``, ``jept_idm`` + ``jept-relabel``, ``jept_lapo``) and ``jept-compare``, on the
 real tiny Meta-World build: what each objective sees, save/reload, and the LeRobot entry points."""
 
 import json
@@ -9,7 +9,7 @@ import pytest
 import torch
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-from lerobot_jept import DTStarConfig, DTStarPolicy, IDMConfig, IDMPolicy, Vid2RobotConfig
+from lerobot_jept import DTStarConfig, DTStarPolicy, IDMConfig, IDMPolicy, LAPOConfig, Vid2RobotConfig
 from lerobot_jept.compare import CompareConfig, CompareError, compare
 from lerobot_jept.components.token_groups import DT_STAR_RULES, TokenGroup, attention_mask
 from lerobot_jept.configuration_jept import SMALL_CPU_OVERRIDES
@@ -129,7 +129,7 @@ def test_vid2robot_shares_one_perceiver_for_prompt_and_robot(vid2robot):
     assert len(ids) == len(set(ids)) == sum(p.requires_grad for p in policy.parameters())
 
 
-@pytest.mark.parametrize("config_cls", [DTStarConfig, Vid2RobotConfig, IDMConfig])
+@pytest.mark.parametrize("config_cls", [DTStarConfig, Vid2RobotConfig, IDMConfig, LAPOConfig])
 def test_save_and_reload_give_identical_outputs(tiny_build, tmp_path, config_cls):
     policy, batch = build(tiny_build, config_cls)
     policy.eval()
@@ -159,7 +159,7 @@ def test_idm_learns_from_transitions_and_cannot_act(tiny_build):
         policy.select_action(batch)
 
 
-@pytest.mark.parametrize("config_cls", [DTStarConfig, Vid2RobotConfig, IDMConfig])
+@pytest.mark.parametrize("config_cls", [DTStarConfig, Vid2RobotConfig, IDMConfig, LAPOConfig])
 def test_small_configs_share_jepts_sizes(config_cls):
     """The shipped small configurations are ``Config.small()`` and use jept's sizes wherever they overlap."""
     from tests.lerobot_jept.test_end_to_end import CONFIG
@@ -318,7 +318,7 @@ def train(tmp, policy_type: str, repo: str, steps: int = 2, *extra: str):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("policy_type", ["dt_star", "vid2robot"])
+@pytest.mark.parametrize("policy_type", ["dt_star", "vid2robot", "lapo"])
 def test_baseline_trains_and_evaluates_with_lerobot(tiny_build, tmp_path, policy_type):
     model, log = train(tmp_path, policy_type, MIX)
     assert json.loads((model / "config.json").read_text())["type"] == f"jept_{policy_type}"

@@ -206,11 +206,6 @@ def test_compiled_blocks_give_the_eager_loss_gradients_and_actions(tiny_build):
         actions = [post(policy.select_action(obs)) for policy in (eager, compiled)]
     torch.testing.assert_close(actions[1], actions[0])
 
-    compiled.train()  # a training step runs with inductor's dropout
-    loss, _ = compiled.forward(batch)
-    loss.backward()
-    assert torch.isfinite(loss)
-
 
 def test_compile_mode_is_checked():
     with pytest.raises(ValueError, match="compile_mode must be one of"):
