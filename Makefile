@@ -47,7 +47,7 @@ $(VENV)/.synced: pyproject.toml uv.lock | $(UV)
 setup: system-deps $(VENV)/.synced
 
 demo: setup
-	$(RUN) -m scripts.demo
+	$(RUN) -m examples.demo
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -28,7 +28,7 @@ def write_prompt_bank(description: str) -> str:
     """A 250-frame 224 px prompt bank from a synthetic clip, through jept-prompts."""
     import av
 
-    from lerobot_jept.prompt_videos import PromptVideosConfig, make_prompt_bank
+    from lerobot_jept.datasets.prompt_videos import PromptVideosConfig, make_prompt_bank
 
     clip = Path(tempfile.mkdtemp(prefix="jept_bench_clip_")) / "clip.mp4"
     rng = np.random.default_rng(0)

@@ -41,8 +41,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from benchmarks.bench_policy import median_time, step_times, sync
 from lerobot_jept import JEPTConfig, JEPTPolicy
-from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
-from lerobot_jept.policy_base import CACHE_DTYPES
+from lerobot_jept.policies.base import CACHE_DTYPES
+from lerobot_jept.policies.jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 
 IMAGE, STATE, SIZE = "observation.image", "observation.state", 224
 FEATURES = {

@@ -38,7 +38,7 @@ from lerobot_jept import (  # noqa: E402
     LAPOConfig,
     Vid2RobotConfig,
 )
-from lerobot_jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
+from lerobot_jept.policies.jept.modeling_jept import PROMPT_VIDEO  # noqa: E402
 
 
 def sync() -> None:

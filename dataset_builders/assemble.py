@@ -21,7 +21,7 @@ from dataset_builders.config import (
 )
 from dataset_builders.plan import BuildPaths, Shard
 from dataset_builders.publish import push_repos
-from lerobot_jept.mixing import MIX_FORMAT
+from lerobot_jept.datasets.mixing import MIX_FORMAT
 
 
 def _replace_dir(tmp: Path, final: Path) -> None:
@@ -45,7 +45,7 @@ def _with_labels(root: Path, repo_id: str) -> Path:
     """The assembled demo repo at ``root`` with ``observation.action_labelled`` = 1 on every frame."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from lerobot_jept.mixing import add_labels
+    from lerobot_jept.datasets.mixing import add_labels
 
     out = root.with_name(root.name + "_labelled")
     add_labels(LeRobotDataset(repo_id, root=root), out, repo_id, labelled=True)
@@ -67,8 +67,8 @@ def _aggregate(sources: list[tuple[str, Path]], repo_id: str, out: Path) -> None
 
 def build_mix(paths: BuildPaths, action_feature: dict, has_video: bool, has_play: bool) -> None:
     """``_mix`` = the ``_demo`` (and ``_play``) episodes + the ``_video`` episodes with the neutral action,
-    unlabelled (``lerobot_jept.mixing``)."""
-    from lerobot_jept.mixing import mix
+    unlabelled (``lerobot_jept.datasets.mixing``)."""
+    from lerobot_jept.datasets.mixing import mix
 
     demos = [(paths.repo_id_of(role), paths.repo(role)) for role in ("demo", "play")[: 1 + has_play]]
     videos = [(paths.repo_id_of("video"), paths.repo("video"))] if has_video else []

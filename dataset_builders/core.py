@@ -10,7 +10,7 @@ A build turns expert rollouts into four LeRobotDataset v3 repos under ``$HF_LERO
   every split, for offline measures of a checkpoint (``jept-prompt-probe``); never used for training;
 - ``<repo_id>_mix``: demo + video episodes in the one repo ``lerobot-train`` needs; video frames have
   ``observation.action_labelled`` = 0 and the neutral action 0, and ``meta/stats.json`` action stats come from
-  labelled frames only (``lerobot_jept.mixing``: a representation LeRobot's dataset tools keep whole).
+  labelled frames only (``lerobot_jept.datasets.mixing``: a representation LeRobot's dataset tools keep whole).
 
 How it stays resumable and safe to kill. Work is cut into *shards* (up to ``episodes_per_shard`` successful
 episodes of one task and one role). A shard is recorded as its own small LeRobotDataset in a ``.tmp`` folder

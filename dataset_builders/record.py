@@ -32,7 +32,7 @@ from dataset_builders.config import (
     task_description,
 )
 from dataset_builders.plan import BuildPaths, Shard
-from lerobot_jept.discretization import bin_centres, snap_to_bins
+from lerobot_jept.policies.discretization import bin_centres, snap_to_bins
 
 ROLLOUTS_AHEAD = 2  # episodes the rollout process may run ahead of the writing
 RANDOM_ACTION_STREAM = 7919  # keeps the random-action draws apart from the env's own use of the seed

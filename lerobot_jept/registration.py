@@ -24,12 +24,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 POLICY_CONFIG_MODULES = (
-    "lerobot_jept.configuration_jept",
-    "lerobot_jept.configuration_idm",
-    "lerobot_jept.configuration_dt_star",
-    "lerobot_jept.configuration_vid2robot",
-    "lerobot_jept.configuration_jept_no_prompt",
-    "lerobot_jept.configuration_lapo",
+    "lerobot_jept.policies.jept.configuration_jept",
+    "lerobot_jept.policies.idm.configuration_idm",
+    "lerobot_jept.policies.dt_star.configuration_dt_star",
+    "lerobot_jept.policies.vid2robot.configuration_vid2robot",
+    "lerobot_jept.policies.jept_no_prompt.configuration_jept_no_prompt",
+    "lerobot_jept.policies.lapo.configuration_lapo",
 )
 ENV_CONFIG_MODULE = "lerobot_jept.envs.configs"
 

@@ -1,6 +1,7 @@
 """The packages' import graph has no cycle (counting imports inside functions too)."""
 
 import ast
+import importlib
 from pathlib import Path
 
 ROOT = Path(__file__).parents[1]
@@ -62,10 +63,42 @@ def test_no_import_cycle():
     graph = import_graph()
     assert (
         len(graph) > 40
-        and "lerobot_jept.suite" in graph["lerobot_jept.study"] | graph["lerobot_jept.compare"]
+        and "lerobot_jept.evaluation.suite"
+        in graph["lerobot_jept.study.run"] | graph["lerobot_jept.evaluation.compare"]
     )
     assert cycles(graph) == []
 
 
 def test_cycle_detection_finds_a_planted_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_lerobots_shape_one_folder_per_policy_type():
+    """Each registered policy type has its own folder with its configuration, modeling and processor modules (the
+    paths LeRobot derives from the config's module); the top level keeps only the plugin's entry."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    import lerobot_jept  # noqa: F401  (registers the types)
+    from lerobot_jept.registration import POLICY_CONFIG_MODULES
+
+    package = ROOT / "lerobot_jept"
+    for module in POLICY_CONFIG_MODULES:
+        importlib.import_module(module)
+    types = [t for t in PreTrainedConfig.get_known_choices() if t.startswith("jept")]
+    assert len(types) == len(POLICY_CONFIG_MODULES) == 6
+    for name in types:
+        config_module = PreTrainedConfig.get_choice_class(name).__module__
+        folder = Path(*config_module.split(".")[:-1])
+        stem = config_module.split(".")[-1].removeprefix("configuration_")
+        assert folder.parent == Path("lerobot_jept/policies"), config_module
+        for kind in ("configuration", "modeling", "processor"):
+            assert (ROOT / folder / f"{kind}_{stem}.py").is_file(), (name, kind)
+    top = {p.stem for p in package.glob("*.py")}
+    assert top == {"__init__", "registration"}, top
+    assert {p.name for p in package.iterdir() if p.is_dir() and p.name != "__pycache__"} == {
+        "policies",
+        "evaluation",
+        "datasets",
+        "study",
+        "envs",
+    }

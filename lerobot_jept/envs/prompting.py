@@ -42,7 +42,9 @@ class PromptVideoWrapper(gym.Wrapper):
         max_frames: int,
         prompt_description: str | None = None,
     ):
-        from lerobot_jept.prompts import PromptBank  # LeRobot's datasets: loaded when an env is built
+        from lerobot_jept.policies.prompts import (
+            PromptBank,  # LeRobot's datasets: loaded when an env is built
+        )
 
         super().__init__(env)
         self.bank = PromptBank(repo_id, root, max_frames, env.unwrapped.image_size)
@@ -96,7 +98,7 @@ class PromptVideoFromBankStep(ProcessorStep):
         episode, new = observation.pop(PROMPT_EPISODE, None), observation.pop(PROMPT_NEW, None)
         if episode is not None and bool((new > 0.5).any()):
             if self._bank is None:
-                from lerobot_jept.prompts import PromptBank
+                from lerobot_jept.policies.prompts import PromptBank
 
                 self._bank = PromptBank(self.repo_id, self.root, self.max_frames, self.image_size)
             episodes = [int(e) for e in episode.reshape(-1).tolist()]

@@ -14,10 +14,10 @@ import xml.etree.ElementTree as ET
 import numpy as np
 from gymnasium import spaces
 
-from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs import spec
 from lerobot_jept.envs.rendering import import_simulator, setup_offscreen_gl
 from lerobot_jept.envs.robosuite_experts import make_expert
+from lerobot_jept.policies.discretization import snap_to_bins
 
 ARMS = {"panda": "Panda", "sawyer": "Sawyer", "iiwa": "IIWA", "ur5e": "UR5e"}
 MANIPULATIONS = {

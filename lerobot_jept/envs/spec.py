@@ -69,7 +69,7 @@ def action_feature(action_names: list[str]) -> dict:
     return {"dtype": "float32", "shape": (len(action_names),), "names": list(action_names)}
 
 
-# Per-frame marker of a real action in mixes of demos and action-free videos (see lerobot_jept.mixing).
+# Per-frame marker of a real action in mixes of demos and action-free videos (see lerobot_jept.datasets.mixing).
 ACTION_LABELLED = "observation.action_labelled"
 
 

@@ -17,8 +17,8 @@ import pytest
 from dataset_builders import core
 from dataset_builders.core import BUILD_FILE, BuildError, build, rollout_expert
 from dataset_builders.metaworld import MetaworldBuildConfig, MetaworldSimulator, main
-from lerobot_jept.discretization import snap_to_bins
 from lerobot_jept.envs.metaworld import STATE_DIM, JeptMetaworldEnv, task_description
+from lerobot_jept.policies.discretization import snap_to_bins
 from tests.conftest import SIM, TINY, load
 
 

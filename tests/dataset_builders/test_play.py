@@ -8,9 +8,9 @@ import pytest
 
 from dataset_builders.core import build
 from dataset_builders.metaworld import MetaworldBuildConfig
+from lerobot_jept.datasets.mixing import labelled_mask
 from lerobot_jept.envs.metaworld import STATE_DIM
-from lerobot_jept.mixing import labelled_mask
-from lerobot_jept.screen import ScreenConfig, load_frames, main, markdown, screen
+from lerobot_jept.evaluation.screen import ScreenConfig, load_frames, main, markdown, screen
 from tests.conftest import SIM, load
 
 PLAY = dict(
@@ -115,7 +115,7 @@ def test_play_flag_is_checked():
 
 
 def test_the_suite_prints_the_floor_beside_each_row():
-    from lerobot_jept.suite import markdown
+    from lerobot_jept.evaluation.suite import markdown
 
     per_task = {"b": {"split": "video", "pc_success": 40.0, "n_episodes": 10}}
     table = markdown(
@@ -126,7 +126,7 @@ def test_the_suite_prints_the_floor_beside_each_row():
 
 
 def test_scene_mates_are_the_builds_other_task_of_the_scene():
-    from lerobot_jept.suite import SuiteError, scene_mate_of
+    from lerobot_jept.evaluation.suite import SuiteError, scene_mate_of
 
     build = {"split": {"demo": ["window-open-v3", "reach-v3"], "video": ["window-close-v3"], "unseen": []}}
     assert scene_mate_of(build, ["window-close-v3"]) == {"window-close-v3": "window-open-v3"}

@@ -10,11 +10,11 @@ import torch
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 
 from lerobot_jept import DTStarConfig, DTStarPolicy, IDMConfig, IDMPolicy, LAPOConfig, Vid2RobotConfig
-from lerobot_jept.compare import CompareConfig, CompareError, compare
-from lerobot_jept.components.token_groups import DT_STAR_RULES, TokenGroup, attention_mask
-from lerobot_jept.configuration_jept import SMALL_CPU_OVERRIDES
-from lerobot_jept.modeling_jept import IGNORE_INDEX
-from lerobot_jept.suite import PAPER_SPLIT
+from lerobot_jept.evaluation.compare import CompareConfig, CompareError, compare
+from lerobot_jept.evaluation.paper import PAPER_SPLIT
+from lerobot_jept.policies.components.token_groups import DT_STAR_RULES, TokenGroup, attention_mask
+from lerobot_jept.policies.jept.configuration_jept import SMALL_CPU_OVERRIDES
+from lerobot_jept.policies.jept.modeling_jept import IGNORE_INDEX
 from tests.conftest import load
 from tests.lerobot_jept.test_end_to_end import MIX, PROMPTS, lerobot_eval, run
 from tests.lerobot_jept.test_policy import mixed_batch
@@ -180,7 +180,7 @@ def test_small_configs_share_jepts_sizes(config_cls):
 
 def suite_output(folder, split, successes: dict[str, list[bool]], simulator="metaworld"):
     """A results.json as jept-eval-suite writes it, from per-episode outcomes."""
-    from lerobot_jept.suite import summarise
+    from lerobot_jept.evaluation.suite import summarise
 
     rate = {t: 100.0 * sum(s) / len(s) for t, s in successes.items()}
     per_task = {
@@ -412,7 +412,7 @@ def test_jept_without_its_prompt_acts_the_same_under_any_prompt(tiny_build, tmp_
     """jept_no_prompt: the recipe's losses, one learned E_prt for every sample (trained in the prompt group),
     so another task's prompt video changes nothing; the prompt options are refused; save and reload act alike."""
     from lerobot_jept import JEPTNoPromptConfig, JEPTNoPromptPolicy
-    from lerobot_jept.modeling_jept import PROMPT_VIDEO
+    from lerobot_jept.policies.jept.modeling_jept import PROMPT_VIDEO
 
     policy, batch = build(tiny_build, JEPTNoPromptConfig, phase_schedule="joint", temporal_dropout=0.0)
     cfg = policy.config

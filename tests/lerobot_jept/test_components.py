@@ -3,11 +3,15 @@
 import pytest
 import torch
 
-from lerobot_jept.components.backbone import BackboneWeightsUnavailableError, SpatialBackbone
-from lerobot_jept.components.encoders import JointEmbeddingEncoder, ObservationTokenizer, PromptVideoEncoder
-from lerobot_jept.components.perceiver import PerceiverIO
-from lerobot_jept.components.predictor import ActionHead, CausalPredictor, ObservationHead
-from lerobot_jept.components.token_groups import attention_mask, jept_groups
+from lerobot_jept.policies.components.backbone import BackboneWeightsUnavailableError, SpatialBackbone
+from lerobot_jept.policies.components.encoders import (
+    JointEmbeddingEncoder,
+    ObservationTokenizer,
+    PromptVideoEncoder,
+)
+from lerobot_jept.policies.components.perceiver import PerceiverIO
+from lerobot_jept.policies.components.predictor import ActionHead, CausalPredictor, ObservationHead
+from lerobot_jept.policies.components.token_groups import attention_mask, jept_groups
 
 SMALL_PERCEIVER = dict(num_latents=8, num_queries=4, heads=2, ff_dim=64, dropout=0.0)
 D, J, W = 32, 16, 40

@@ -17,7 +17,7 @@ BIN = Path(sys.executable).parent
 WRAPPER = """
 import json, os, sys
 import torch
-from lerobot_jept.modeling_jept import JEPTPolicy
+from lerobot_jept.policies.jept.modeling_jept import JEPTPolicy
 
 update = JEPTPolicy.update
 

@@ -143,7 +143,7 @@ def test_lerobot_eval_reports_success_and_writes_videos(trained):
 def test_lerobot_eval_takes_the_prompt_from_a_video_file(trained):
     """No prompt from the env: ``--policy.prompt_video`` reaches the saved policy, and so does
     ``--policy.prompt_repo_id`` (a bank that does not exist fails by its name, so it was the one used)."""
-    from lerobot_jept.prompts import PromptBank
+    from lerobot_jept.policies.prompts import PromptBank
 
     tmp, out, _ = trained
     model = out / "checkpoints/last/pretrained_model"

@@ -1,11 +1,11 @@
-"""How often a scene-mate's scripted expert would act differently (scripts/expert_swap_ceiling.py), on the real
+"""How often a scene-mate's scripted expert would act differently (examples/measurements/expert_swap_ceiling.py), on the real
 Meta-World experts."""
 
 import numpy as np
 import pytest
 
+from examples.measurements.expert_swap_ceiling import SwapCeilingConfig, main, mate_differences
 from lerobot_jept.envs import metaworld as mw
-from scripts.expert_swap_ceiling import SwapCeilingConfig, main, mate_differences
 
 
 def test_expert_action_of_another_task_reads_the_same_state():

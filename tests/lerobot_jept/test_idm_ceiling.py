@@ -1,11 +1,9 @@
-"""The inverse-dynamics ceilings (scripts/idm_ceiling.py) on a real tiny build, a checkpoint and hand-made frames."""
+"""The inverse-dynamics ceilings (examples/measurements/idm_ceiling.py) on a real tiny build, a checkpoint and hand-made frames."""
 
 import numpy as np
 import pytest
 
-from lerobot_jept.discretization import to_bin_indices
-from lerobot_jept.prompt_probe import probe_frames
-from scripts.idm_ceiling import (
+from examples.measurements.idm_ceiling import (
     EMBEDDING_PARTS,
     OWN_INVERSE,
     PREDICTED,
@@ -14,6 +12,8 @@ from scripts.idm_ceiling import (
     embedding_frames,
     load_frames,
 )
+from lerobot_jept.evaluation.prompt_probe import probe_frames
+from lerobot_jept.policies.discretization import to_bin_indices
 from tests.conftest import TINY, load
 from tests.lerobot_jept.test_hub import checkpoint  # noqa: F401  (the saved tiny checkpoint, a fixture)
 from tests.lerobot_jept.test_policy import tiny_config

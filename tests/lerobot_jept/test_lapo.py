@@ -5,12 +5,12 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 
 from lerobot_jept import LAPOConfig, LAPOPolicy
-from lerobot_jept.components.latent_action import (
+from lerobot_jept.policies.base import IGNORE_INDEX
+from lerobot_jept.policies.components.latent_action import (
     FiniteScalarQuantizer,
     LatentActionDecoder,
     LatentActionModel,
 )
-from lerobot_jept.policy_base import IGNORE_INDEX
 from tests.lerobot_jept.test_baselines import build
 
 

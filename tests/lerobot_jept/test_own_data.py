@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from lerobot_jept.datasets.mixing import MixConfig, MixError, run_mix
+from lerobot_jept.datasets.prompt_videos import PromptVideosConfig, PromptVideosError, make_prompt_bank
 from lerobot_jept.envs.metaworld import task_description
-from lerobot_jept.mixing import MixConfig, MixError, run_mix
-from lerobot_jept.prompt_videos import PromptVideosConfig, PromptVideosError, make_prompt_bank
 from tests.conftest import load
 from tests.lerobot_jept.test_end_to_end import CONFIG, MIX, TINY_TRAIN, lerobot_eval, run
 
@@ -235,7 +235,7 @@ def write_mp4(path, size: tuple[int, int], frames: int, vfr: bool = False) -> No
 
 
 def test_jept_prompts_from_plain_videos(tmp_path):
-    from lerobot_jept.prompts import PromptBank
+    from lerobot_jept.policies.prompts import PromptBank
 
     (tmp_path / "close").mkdir()
     (tmp_path / "open").mkdir()

@@ -13,9 +13,9 @@ from lerobot.processor import PolicyProcessorPipeline
 from safetensors.torch import load_file
 
 from lerobot_jept import JEPTConfig, JEPTPolicy
-from lerobot_jept.modeling_jept import IGNORE_INDEX, PROMPT_VIDEO
-from lerobot_jept.processor_jept import JeptActionBinsStep
-from lerobot_jept.prompts import PromptNotFoundError
+from lerobot_jept.policies.jept.modeling_jept import IGNORE_INDEX, PROMPT_VIDEO
+from lerobot_jept.policies.jept.processor_jept import JeptActionBinsStep
+from lerobot_jept.policies.prompts import PromptNotFoundError
 from tests.conftest import load, write_clip
 
 MIX, PROMPTS = "test/mw_tiny_mix", "test/mw_tiny_prompts"
@@ -387,7 +387,7 @@ def test_prompt_bank_lookup(tiny_build):
 
 
 def test_prompt_video_file_is_the_prompt_in_control(tiny_build, tmp_path):
-    from lerobot_jept.prompts import PromptBank, load_prompt_video, subsample_indices
+    from lerobot_jept.policies.prompts import PromptBank, load_prompt_video, subsample_indices
 
     policy, pre, _ = build_policy(tiny_build)
     bank = PromptBank(PROMPTS, None, 1000, 64)
@@ -577,7 +577,7 @@ def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(
 
 
 def test_prompt_guidance_needs_a_null_prompt(tiny_build):
-    from lerobot_jept.suite import PolicyArg
+    from lerobot_jept.evaluation.cli_args import PolicyArg
 
     assert build_policy(tiny_build)[0].model.null_prompt is None  # the paper's checkpoints: no new weights
     with pytest.raises(ValueError, match="--policy.prompt_dropout=P"):

@@ -7,7 +7,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from lerobot_jept.components.backbone import (
+from lerobot_jept.policies.components.backbone import (
     BackboneWeightsUnavailableError,
     SpatialBackbone,
     expected_weights,

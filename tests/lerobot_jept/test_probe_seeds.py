@@ -1,4 +1,4 @@
-"""The action target over seeds (scripts/probe_seeds.py): on a real probe of a saved checkpoint, and on
+"""The action target over seeds (examples/measurements/probe_seeds.py): on a real probe of a saved checkpoint, and on
 hand-made probe outputs whose answer is known."""
 
 import copy
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.stats import t as t_dist
 
-from lerobot_jept.prompt_probe import ProbeConfig, run_probe
-from lerobot_jept.suite import DatasetArg, PolicyArg
-from scripts.probe_seeds import compare_arms, load_probe, markdown
+from examples.measurements.probe_seeds import compare_arms, load_probe, markdown
+from lerobot_jept.evaluation.cli_args import DatasetArg, PolicyArg
+from lerobot_jept.evaluation.prompt_probe import ProbeConfig, run_probe
 from tests.conftest import TINY
 from tests.lerobot_jept.test_hub import checkpoint  # noqa: F401  (the saved tiny checkpoint, a fixture)
 

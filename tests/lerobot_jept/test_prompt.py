@@ -24,7 +24,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetad
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 
 from lerobot_jept import JEPTConfig
-from lerobot_jept.prompt_probe import (
+from lerobot_jept.evaluation.cli_args import DatasetArg, PolicyArg
+from lerobot_jept.evaluation.prompt_probe import (
     ProbeConfig,
     prompt_embeddings,
     run_probe,
@@ -32,7 +33,6 @@ from lerobot_jept.prompt_probe import (
     separability,
     trained_separability,
 )
-from lerobot_jept.suite import DatasetArg, PolicyArg
 
 SIZE, LENGTH = 32, 12
 TASKS = {"move the square left": -1, "move the square right": 1}

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from lerobot_jept import JEPTConfig
-from lerobot_jept.components.perceiver import PerceiverIO
-from lerobot_jept.configuration_vid2robot import Vid2RobotConfig
-from lerobot_jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
+from lerobot_jept.policies.components.perceiver import PerceiverIO
+from lerobot_jept.policies.jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
+from lerobot_jept.policies.vid2robot.configuration_vid2robot import Vid2RobotConfig
 from tests.lerobot_jept.test_policy import build_policy, mixed_batch
 
 
@@ -114,7 +114,7 @@ def test_prompt_cache_dtype_is_checked():
 
 
 def test_chunked_checkpointed_prompt_frames_give_the_same_embedding_and_gradients():
-    from lerobot_jept.components.encoders import PromptVideoEncoder
+    from lerobot_jept.policies.components.encoders import PromptVideoEncoder
 
     sizes = dict(num_latents=8, num_queries=2, heads=2, ff_dim=32, dropout=0.0)
     torch.manual_seed(0)

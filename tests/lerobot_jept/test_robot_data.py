@@ -10,8 +10,8 @@ import torch
 from lerobot.processor import TransitionKey
 
 from lerobot_jept import JEPTConfig
-from lerobot_jept.discretization import bin_centres
-from lerobot_jept.processor_jept import JeptActionBinsStep
+from lerobot_jept.policies.discretization import bin_centres
+from lerobot_jept.policies.jept.processor_jept import JeptActionBinsStep
 from tests.conftest import write_clip
 from tests.lerobot_jept.standinarm import CAMERAS, JOINTS, SENT
 
@@ -124,8 +124,8 @@ def test_mix_train_and_roll_out_on_the_arm_with_a_prompt_video_file(arm_repo, tm
 
     from lerobot.scripts.lerobot_rollout import rollout
 
-    from lerobot_jept.mixing import MixConfig, run_mix
-    from lerobot_jept.prompt_videos import PromptVideosConfig, make_prompt_bank
+    from lerobot_jept.datasets.mixing import MixConfig, run_mix
+    from lerobot_jept.datasets.prompt_videos import PromptVideosConfig, make_prompt_bank
     from tests.lerobot_jept.test_end_to_end import CONFIG, run
 
     write_arm_repo("test/arm_videos", ["put the cube down"] * 2, with_actions=False, seed=1)

@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from lerobot_jept.compare import CompareConfig, compare
-from lerobot_jept.prompt_probe import bin_accuracy, split_summary
-from lerobot_jept.study import (
+from lerobot_jept.evaluation.compare import CompareConfig, compare
+from lerobot_jept.evaluation.prompt_probe import bin_accuracy, split_summary
+from lerobot_jept.study.run import (
     BuildSpec,
     MethodSpec,
     SplitSpec,
@@ -265,7 +265,7 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
 def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
     """Two cases (video-only tasks b, d): b passes (margin above both seed ranges, scene-mate's prompt at the
     floor), d fails (inside the spread); the verdict needs min_cases passing, the goal mean and the floor."""
-    from lerobot_jept.study import PreRegisteredTest
+    from lerobot_jept.study.run import PreRegisteredTest
 
     split = {"demo": ["a"], "video": ["b", "d"], "unseen": []}
     cfg = study(
@@ -414,7 +414,7 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
 def test_shipped_study_files_parse_and_plan(name, monkeypatch):
     import draccus
 
-    from lerobot_jept.suite import PAPER_SPLIT
+    from lerobot_jept.evaluation.paper import PAPER_SPLIT
 
     monkeypatch.chdir(REPO)  # the study files name their train configs relative to the repo
     cfg = draccus.parse(StudyConfig, config_path=f"examples/studies/{name}.json", args=[])
@@ -489,7 +489,7 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
             k: list(v) for k, v in PAPER_SPLIT.items()
         }
     if name == "paper_table4":
-        from lerobot_jept.components.backbone import RAFT_MODELS, VIDEOMAE_SIZES
+        from lerobot_jept.policies.components.backbone import RAFT_MODELS, VIDEOMAE_SIZES
 
         backbones = [a.split("=", 1)[1] for m in cfg.methods for a in m.args if "vision_backbone=" in a]
         assert backbones[0] in RAFT_MODELS and backbones[1] in VIDEOMAE_SIZES

@@ -1,0 +1,194 @@
+"""The video-conditioned causal predictor Psi_pred and its heads Gamma_obs, Gamma_act (Section 3.2.2), and DT*'s
+transformer (the predictor without the joint embedding tokens)."""
+
+import torch
+from einops import rearrange, repeat
+from torch import Tensor, nn
+
+from lerobot_jept.policies.components.attention import CrossAttentionBlock, SelfAttentionStack, StepPositions
+from lerobot_jept.policies.components.token_groups import (
+    DT_STAR_RULES,
+    TokenGroup,
+    attention_mask,
+    dt_star_groups,
+    group_slices,
+    jept_groups,
+)
+
+
+class PromptedSequence(nn.Module):
+    """What Psi_pred and DT*'s transformer share: input projections of the prompt and observation tokens, one
+    type embedding per token kind (prompt, obs[, emb]), step positions and the Transformer stack."""
+
+    def __init__(
+        self,
+        obs_dim: int,
+        width: int,
+        heads: int,
+        ff_dim: int,
+        layers: int,
+        dropout: float,
+        max_steps: int,
+        tokens_per_step: int,
+        num_kinds: int,
+    ):
+        super().__init__()
+        self.prompt_in = nn.Linear(obs_dim, width)
+        self.obs_in = nn.Linear(obs_dim, width)
+        self.type_embed = nn.Parameter(torch.randn(num_kinds, width) * 0.02)
+        self.positions = StepPositions(max_steps, tokens_per_step, width)
+        self.transformer = SelfAttentionStack(width, heads, ff_dim, layers, dropout)
+
+    def _obs_tokens(self, obs: Tensor) -> Tensor:
+        """(B, k, N, D_in) -> (B, k, N, width) with step positions and the obs type."""
+        return self.obs_in(obs) + self.positions(obs.shape[1]) + self.type_embed[1]
+
+    def _with_prompt(self, prompt: Tensor | None, seq: Tensor, groups: list) -> tuple[Tensor, list]:
+        """Prepend the prompt group (none during the warm-up)."""
+        if prompt is None:
+            return seq, groups
+        seq = torch.cat([self.prompt_in(prompt) + self.type_embed[0], seq], dim=1)
+        return seq, [TokenGroup("prompt", prompt.shape[1]), *groups]
+
+
+class DTStarTransformer(PromptedSequence):
+    """DT*: ``[E_prt | o_1, ..., o_k]`` under ``DT_STAR_RULES`` -> hidden states of the obs tokens (B, k, N,
+    width). JEPT's predictor with the joint embedding prediction removed."""
+
+    def __init__(self, obs_dim: int, width: int, **kwargs):
+        super().__init__(obs_dim, width, num_kinds=2, **kwargs)
+
+    def forward(self, prompt: Tensor | None, obs: Tensor) -> Tensor:
+        k, n = obs.shape[1], obs.shape[2]
+        seq = rearrange(self._obs_tokens(obs), "b k n d -> b (k n) d")
+        seq, groups = self._with_prompt(prompt, seq, dt_star_groups(0, k, n))
+        z = self.transformer(seq, mask=attention_mask(groups, DT_STAR_RULES).to(seq.device))
+        return torch.stack([z[:, s] for s in group_slices(groups, "obs")], dim=1)
+
+
+class CausalPredictor(PromptedSequence):
+    """``Z = Psi_pred(E_prt, o_1, h_2, ..., o_k, h_{k+1})`` with the block-causal mask of the paper.
+
+    Inputs: prompt (B, N_prt, D_in) or None (warm-up), obs tokens (B, k, N_obs, D_in), joint embeddings
+    (B, k, N_obs, joint_dim) for h_2..h_{k+1}. Returns the hidden states of the obs and emb tokens,
+    each (B, k, N_obs, width).
+    """
+
+    def __init__(self, obs_dim: int, joint_dim: int, width: int, **kwargs):
+        super().__init__(obs_dim, width, num_kinds=3, **kwargs)
+        self.emb_in = nn.Linear(joint_dim, width)
+
+    def _sequence(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, list]:
+        """Input tokens and groups; ``emb`` may lack the last step (k - 1 embeddings): its group is left out."""
+        k, n = obs.shape[1], obs.shape[2]
+        o = self._obs_tokens(obs)
+        h = self.emb_in(emb) + self.positions(k)[: emb.shape[1]] + self.type_embed[2]
+        missing = k - emb.shape[1]
+        if missing:
+            h = torch.cat([h, torch.zeros_like(o[:, -missing:])], dim=1)
+        seq = rearrange(torch.stack([o, h], dim=2), "b k g n d -> b (k g n) d")
+        groups = jept_groups(0, k, n)
+        if missing:
+            seq, groups = seq[:, :-n], groups[:-1]
+        return self._with_prompt(prompt, seq, groups)
+
+    def forward(self, prompt: Tensor | None, obs: Tensor, emb: Tensor) -> tuple[Tensor, Tensor]:
+        seq, groups = self._sequence(prompt, obs, emb)
+        z = self.transformer(seq, mask=attention_mask(groups).to(seq.device))
+        z_obs = torch.stack([z[:, s] for s in group_slices(groups, "obs")], dim=1)
+        z_emb = torch.stack([z[:, s] for s in group_slices(groups, "emb")], dim=1)
+        return z_obs, z_emb
+
+    def forward_last_step(self, prompt: Tensor | None, obs: Tensor, emb_past: Tensor, predict_emb) -> Tensor:
+        """Control: hidden states (B, N, width) of the h_{t+1} tokens, h_{t+1} = ``predict_emb`` of the o_t
+        hidden states. One pass over the sequence up to o_t, then the h_{t+1} group alone on its cached layer
+        inputs (the earlier tokens never attend to it), instead of two full passes."""
+        k, n = obs.shape[1], obs.shape[2]
+        seq, groups = self._sequence(prompt, obs, emb_past)
+        z, states = self.transformer.forward_with_states(seq, mask=attention_mask(groups).to(seq.device))
+        h_next = self.emb_in(predict_emb(z[:, -n:])) + self.positions(k)[-1] + self.type_embed[2]
+        return self.transformer.extend(states, h_next)
+
+
+class ObservationHead(nn.Module):
+    """Gamma_obs: MLP (LeakyReLU) from obs-token hidden states (..., width) to h_{t+1} tokens (..., joint_dim)."""
+
+    def __init__(self, width: int, joint_dim: int, hidden_dim: int = 256, layers: int = 3):
+        super().__init__()
+        dims = [width] + [hidden_dim] * (layers - 1)
+        blocks = []
+        for d_in, d_out in zip(dims[:-1], dims[1:], strict=True):
+            blocks += [nn.Linear(d_in, d_out), nn.LeakyReLU()]
+        self.mlp = nn.Sequential(*blocks, nn.Linear(dims[-1], joint_dim))
+
+    def forward(self, z_obs: Tensor) -> Tensor:
+        return self.mlp(z_obs)
+
+
+class ActionHead(nn.Module):
+    """Gamma_act: one learnable query per action dimension cross-attends to the h_{t+1} hidden states.
+
+    (B, k, N_obs, width) -> logits (B, k, action_dim, num_bins).
+    """
+
+    def __init__(
+        self,
+        width: int,
+        action_dim: int,
+        num_bins: int,
+        dim: int = 256,
+        heads: int = 4,
+        layers: int = 2,
+        ff_dim: int = 512,
+        dropout: float = 0.0,
+    ):
+        super().__init__()
+        self.queries = nn.Parameter(torch.randn(action_dim, dim) * 0.02)
+        self.blocks = nn.ModuleList(
+            CrossAttentionBlock(dim, heads, ff_dim, dropout, context_dim=width) for _ in range(layers)
+        )
+        self.out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, num_bins))
+
+    def forward(self, z_emb: Tensor) -> Tensor:
+        b, k = z_emb.shape[:2]
+        context = rearrange(z_emb, "b k n d -> (b k) n d")
+        q = repeat(self.queries, "a d -> bk a d", bk=b * k)
+        for block in self.blocks:
+            q = block(q, context)
+        return rearrange(self.out(q), "(b k) a c -> b k a c", b=b)
+
+
+class SelfStateInverseDynamics(nn.Module):
+    """``idm_input="self_state"``: Gamma_state predicts the self-state change s_{t+1} - s_t (each dimension in
+    units of its running RMS) from the o_t tokens' hidden states, and an MLP maps (s_t, change) to action logits.
+
+    ``change_of`` (B, T + 1, S) states -> (B, T, S) scaled changes; ``predict_change`` (B, T, N, width) ->
+    (B, T, S); ``forward`` (..., S) states and (..., S) changes -> logits (..., action_dim, num_bins).
+    """
+
+    def __init__(
+        self, width: int, state_dim: int, action_dim: int, num_bins: int, hidden_dim: int, layers: int
+    ):
+        super().__init__()
+        self.change_head = ObservationHead(width, state_dim, hidden_dim, layers)
+        self.inverse = ObservationHead(2 * state_dim, action_dim * num_bins, hidden_dim, layers)
+        self.action_dim = action_dim
+        self.register_buffer("scale", torch.ones(state_dim))
+        self.register_buffer("scale_updates", torch.zeros((), dtype=torch.long))
+
+    @torch.no_grad()
+    def update_scale(self, state: Tensor, momentum: float = 0.01) -> None:
+        """Training: move the per-dimension RMS of the changes towards this batch's (the first batch sets it)."""
+        rms = (state[:, 1:] - state[:, :-1]).pow(2).mean((0, 1)).sqrt().clamp_min(1e-6)
+        self.scale.copy_(rms if self.scale_updates == 0 else self.scale.lerp(rms, momentum))
+        self.scale_updates += 1
+
+    def change_of(self, state: Tensor) -> Tensor:
+        return (state[:, 1:] - state[:, :-1]) / self.scale
+
+    def predict_change(self, z_obs: Tensor) -> Tensor:
+        return self.change_head(z_obs.mean(-2))
+
+    def forward(self, state: Tensor, change: Tensor) -> Tensor:
+        logits = self.inverse(torch.cat([state, change], dim=-1))
+        return rearrange(logits, "... (a c) -> ... a c", a=self.action_dim)

@@ -1,9 +1,0 @@
-"""``make_jept_no_prompt_pre_post_processors``: JEPT's pipeline (the bank's prompt videos reach the policy, which
-ignores them)."""
-
-from lerobot_jept.configuration_jept_no_prompt import JEPTNoPromptConfig
-from lerobot_jept.processor_jept import make_jept_pre_post_processors
-
-
-def make_jept_no_prompt_pre_post_processors(config: JEPTNoPromptConfig, dataset_stats=None, **kwargs):
-    return make_jept_pre_post_processors(config, dataset_stats)

@@ -1,8 +1,0 @@
-"""``make_jept_lapo_pre_post_processors``: JEPT's pipeline (prompt video from the bank, action bins)."""
-
-from lerobot_jept.configuration_lapo import LAPOConfig
-from lerobot_jept.processor_jept import make_jept_pre_post_processors
-
-
-def make_jept_lapo_pre_post_processors(config: LAPOConfig, dataset_stats=None, **kwargs):
-    return make_jept_pre_post_processors(config, dataset_stats)
