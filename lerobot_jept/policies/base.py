@@ -21,7 +21,7 @@ from lerobot_jept.policies.components.attention import CrossAttentionBlock
 from lerobot_jept.policies.components.backbone import SpatialBackbone
 from lerobot_jept.policies.components.encoders import ObservationTokenizer, PromptVideoEncoder
 from lerobot_jept.policies.components.perceiver import PerceiverIO
-from lerobot_jept.policies.components.predictor import ActionHead, SelfStateInverseDynamics
+from lerobot_jept.policies.components.predictor import ActionHead, DTStarTransformer, SelfStateInverseDynamics
 from lerobot_jept.policies.discretization import bin_centres
 from lerobot_jept.policies.jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.policies.prompts import PromptBank, load_prompt_video, resize_frames, unit_float
@@ -105,15 +105,30 @@ def make_prompt_encoder(config: JEPTConfig, backbone_dim: int) -> PromptVideoEnc
     )
 
 
-def make_action_head(config: JEPTConfig, width: int) -> ActionHead:
+def make_action_head(
+    config: JEPTConfig, width: int, outputs: int | None = None, classes: int | None = None
+) -> ActionHead:
+    """Gamma_act at the config's sizes: ``outputs`` queries (default: the action dimensions) of ``classes``
+    logits each (default: the action bins)."""
     return ActionHead(
         width,
-        config.resolved_action_dim,
-        config.num_action_bins,
+        outputs or config.resolved_action_dim,
+        classes or config.num_action_bins,
         dim=config.action_head_dim,
         heads=config.action_head_heads,
         layers=config.action_head_layers,
         ff_dim=config.action_head_ff_dim,
+    )
+
+
+def make_dt_star_transformer(config: JEPTConfig) -> DTStarTransformer:
+    """DT*'s causal Transformer over ``[E_prt | o_t-k+1, ..., o_t]`` at the ``predictor_*`` sizes."""
+    return DTStarTransformer(
+        config.perceiver_dim,
+        config.predictor_dim,
+        **transformer_kwargs(config, "predictor"),
+        max_steps=config.n_obs_steps,
+        tokens_per_step=config.frame_perceiver_queries + 1,
     )
 
 
@@ -247,8 +262,8 @@ class VisualPolicyNet(nn.Module):
 
     def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
         """Frames (B, T, 3, H, W), or (B, T, K, 3, H, W) of K cameras, + state (B, T, S) -> observation tokens
-        (B, T, N_obs, D)."""
-        raise NotImplementedError
+        (B, T, N_obs, D), through the model's ``tokenizer``."""
+        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
 
     def encode_prompt(self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None) -> Tensor:
         """(B, N, 3, H, W) prompt frames -> E_prt (B, N_prt, D). Only the Perceivers learn from prompts
@@ -371,6 +386,19 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         warmup, step = self.config.scheduler_warmup_steps, int(self.num_updates)
         factor = step / warmup if step < warmup else 1.0
         return {f"lr_{name}": lr * factor for name, lr in rates.items()}
+
+    def prompted_lr_groups(self, predictor: list[nn.Module]) -> list[dict]:
+        """The three groups of a policy with a prompt encoder: the tokenizer (and a trained backbone) at
+        ``optimizer_lr_encoder``, the prompt encoder at ``optimizer_lr_prompt``, ``predictor`` at
+        ``optimizer_lr_predictor``."""
+        cfg = self.config
+        return self.lr_groups(
+            [
+                ("encoder", cfg.optimizer_lr_encoder, self.encoder_modules()),
+                ("prompt", cfg.optimizer_lr_prompt, [self.model.prompt_encoder]),
+                ("predictor", cfg.optimizer_lr_predictor, predictor),
+            ]
+        )
 
     def encoder_modules(self) -> list[nn.Module]:
         """The single-frame tokenizer, with the backbone when it is trained (the ``optimizer_lr_encoder`` group

@@ -13,11 +13,10 @@ from lerobot_jept.policies.base import (
     VisualPolicyNet,
     make_action_head,
     make_backbone,
+    make_dt_star_transformer,
     make_prompt_encoder,
     make_tokenizer,
-    transformer_kwargs,
 )
-from lerobot_jept.policies.components.predictor import DTStarTransformer
 from lerobot_jept.policies.dt_star.configuration_dt_star import DTStarConfig
 
 
@@ -30,17 +29,8 @@ class DTStar(VisualPolicyNet):
         self.backbone = make_backbone(config)
         self.tokenizer = make_tokenizer(config, self.backbone.dim)
         self.prompt_encoder = make_prompt_encoder(config, self.backbone.dim)
-        self.transformer = DTStarTransformer(
-            config.perceiver_dim,
-            config.predictor_dim,
-            **transformer_kwargs(config, "predictor"),
-            max_steps=config.n_obs_steps,
-            tokens_per_step=config.frame_perceiver_queries + 1,
-        )
+        self.transformer = make_dt_star_transformer(config)
         self.action_head = make_action_head(config, config.predictor_dim)
-
-    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
-        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
 
     def action_logits(self, prompt: Tensor, obs: Tensor) -> Tensor:
         """E_prt (B, N_prt, D) and obs tokens (B, k, N, D) -> logits (B, k, A, bins) of a_{t-k+1} .. a_t."""
@@ -55,11 +45,5 @@ class DTStarPolicy(ContextActionPolicy):
     model_class = DTStar
 
     def get_optim_params(self) -> list[dict]:
-        cfg, m = self.config, self.model
-        return self.lr_groups(
-            [
-                ("encoder", cfg.optimizer_lr_encoder, self.encoder_modules()),
-                ("prompt", cfg.optimizer_lr_prompt, [m.prompt_encoder]),
-                ("predictor", cfg.optimizer_lr_predictor, [m.transformer, m.action_head]),
-            ]
-        )
+        m = self.model
+        return self.prompted_lr_groups([m.transformer, m.action_head])

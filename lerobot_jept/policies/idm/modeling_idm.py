@@ -41,9 +41,6 @@ class IDM(VisualPolicyNet):
         )
         self.action_head = make_action_head(config, width)
 
-    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
-        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
-
     def forward(self, images: Tensor | None, state: Tensor) -> Tensor:
         """Frames (B, 2, 3, H, W) and states (B, 2, S) of o_t, o_{t+1} -> logits (B, 1, A, bins) of a_t."""
         if self.state_dynamics is not None:

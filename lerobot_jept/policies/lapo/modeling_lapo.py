@@ -16,13 +16,13 @@ from lerobot_jept.policies.base import (
     IGNORE_INDEX,
     DiscreteActionPolicy,
     VisualPolicyNet,
+    make_action_head,
     make_backbone,
+    make_dt_star_transformer,
     make_prompt_encoder,
     make_tokenizer,
-    transformer_kwargs,
 )
 from lerobot_jept.policies.components.latent_action import LatentActionDecoder, LatentActionModel
-from lerobot_jept.policies.components.predictor import ActionHead, DTStarTransformer
 from lerobot_jept.policies.lapo.configuration_lapo import LAPOConfig
 
 
@@ -36,21 +36,9 @@ class LAPO(VisualPolicyNet):
         self.backbone = make_backbone(config)
         self.tokenizer = make_tokenizer(config, self.backbone.dim)
         self.prompt_encoder = make_prompt_encoder(config, self.backbone.dim)
-        self.transformer = DTStarTransformer(
-            config.perceiver_dim,
-            config.predictor_dim,
-            **transformer_kwargs(config, "predictor"),
-            max_steps=config.n_obs_steps,
-            tokens_per_step=config.frame_perceiver_queries + 1,
-        )
-        self.latent_head = ActionHead(
-            config.predictor_dim,
-            config.latent_dims,
-            config.latent_levels,
-            dim=config.action_head_dim,
-            heads=config.action_head_heads,
-            layers=config.action_head_layers,
-            ff_dim=config.action_head_ff_dim,
+        self.transformer = make_dt_star_transformer(config)
+        self.latent_head = make_action_head(
+            config, config.predictor_dim, config.latent_dims, config.latent_levels
         )
         state_dim = config.input_features[OBS_STATE].shape[0]
         cameras = len(config.image_keys)
@@ -65,9 +53,6 @@ class LAPO(VisualPolicyNet):
         self.decoder = LatentActionDecoder(
             config.latent_dims, state_dim, config.resolved_action_dim, config.num_action_bins, **mlp
         )
-
-    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
-        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
 
     def latent_logits(self, prompt: Tensor, obs: Tensor) -> Tensor:
         """E_prt (B, N_prt, D) and obs tokens (B, k, N, D) -> logits (B, k, latent_dims, latent_levels)."""
@@ -87,18 +72,8 @@ class LAPOPolicy(DiscreteActionPolicy):
     model_class = LAPO
 
     def get_optim_params(self) -> list[dict]:
-        cfg, m = self.config, self.model
-        return self.lr_groups(
-            [
-                ("encoder", cfg.optimizer_lr_encoder, self.encoder_modules()),
-                ("prompt", cfg.optimizer_lr_prompt, [m.prompt_encoder]),
-                (
-                    "predictor",
-                    cfg.optimizer_lr_predictor,
-                    [m.transformer, m.latent_head, m.latent_model, m.decoder],
-                ),
-            ]
-        )
+        m = self.model
+        return self.prompted_lr_groups([m.transformer, m.latent_head, m.latent_model, m.decoder])
 
     def transitions(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The latent model on the sample's k transitions: latent values and level indices (B, k, dims), the

@@ -91,9 +91,6 @@ class Vid2Robot(VisualPolicyNet):
         self.action_head = make_action_head(config, config.predictor_dim)
         self.contrastive = PromptAlignment(config.perceiver_dim, config.perceiver_dim)
 
-    def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
-        return self.tokenize(self.tokenizer, self.backbone_tokens(images), state)
-
     def encode_prompt_frames(
         self, video: Tensor, mask: Tensor | None, ids: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
@@ -114,18 +111,8 @@ class Vid2RobotPolicy(ContextActionPolicy):
     model_class = Vid2Robot
 
     def get_optim_params(self) -> list[dict]:
-        cfg, m = self.config, self.model
-        return self.lr_groups(
-            [
-                (
-                    "encoder",
-                    cfg.optimizer_lr_encoder,
-                    self.encoder_modules(),
-                ),  # the Perceiver shared with the prompt
-                ("prompt", cfg.optimizer_lr_prompt, [m.prompt_encoder]),
-                ("predictor", cfg.optimizer_lr_predictor, [m.transformer, m.action_head, m.contrastive]),
-            ]
-        )
+        m = self.model  # the encoder group holds the Perceiver shared with the prompt
+        return self.prompted_lr_groups([m.transformer, m.action_head, m.contrastive])
 
     def auxiliary_losses(self, batch: dict[str, Tensor], obs: Tensor) -> tuple[Tensor, Tensor, dict]:
         """Prompt/robot video contrastive and temporal cycle consistency, on every frame."""
