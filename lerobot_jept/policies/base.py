@@ -4,6 +4,7 @@ the frozen-or-trained spatial backbone and the prompt path, builders for the par
 the masked action loss, the prompt lookup, the per-frame token cache of control and LeRobot's Hub hooks.
 """
 
+import contextvars
 import dataclasses
 import json
 from collections import OrderedDict, deque
@@ -33,6 +34,8 @@ PROMPT_MASK = "observation.prompt_video_mask"
 PROMPT_ID = "observation.prompt_id"
 CACHE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 IGNORE_INDEX = -100  # action labels that take no part in the action loss (unlabelled or padded frames)
+# True while a checkpoint is loading: its saved options are taken as they are.
+_LOADING: contextvars.ContextVar[bool] = contextvars.ContextVar("jept_loading_checkpoint", default=False)
 
 
 def transformer_kwargs(config: JEPTConfig, which: str) -> dict:
@@ -300,6 +303,10 @@ class DiscreteActionPolicy(PreTrainedPolicy):
     def __init__(self, config: JEPTConfig, **kwargs):
         super().__init__(config)
         config.validate_features()
+        if (
+            not _LOADING.get()
+        ):  # a new policy: an option its type ignores is an error (a checkpoint loads as saved)
+            config.refuse_ignored_options()
         self.config = config
         self.model = self.model_class(config)
         if config.compile_model:
@@ -327,7 +334,11 @@ class DiscreteActionPolicy(PreTrainedPolicy):
                     pretrained_name_or_path
                 )
                 kwargs["config"] = dataclasses.replace(config, **options)
-            return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
+            loading = _LOADING.set(True)
+            try:
+                return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
+            finally:
+                _LOADING.reset(loading)
         except Exception as err:
             cause = err
             while cause is not None and not isinstance(cause, PluginVersionError):

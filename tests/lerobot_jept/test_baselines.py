@@ -466,3 +466,27 @@ def test_self_state_idm_reads_the_state_change_alone_and_fits_it(tiny_build, tmp
     policy.save_pretrained(tmp_path)
     reloaded = IDMPolicy.from_pretrained(tmp_path).eval()
     torch.testing.assert_close(reloaded.action_logits(batch), policy.action_logits(batch))
+
+
+@pytest.mark.parametrize(
+    "config_cls, option, value",
+    [
+        (DTStarConfig, "ema_decay", 0.5),
+        (Vid2RobotConfig, "prompt_warmup_steps", 7),
+        (LAPOConfig, "temporal_layers", 5),
+    ]
+    + [(IDMConfig, "phase_steps", 3)],
+)
+def test_an_option_the_type_ignores_is_an_error_and_a_saved_checkpoint_loads_as_it_is(
+    tiny_build, tmp_path, config_cls, option, value
+):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    meta = LeRobotDatasetMetadata(MIX)
+    fields = {**SMALL_CPU_OVERRIDES, "device": "cpu", "image_size": 64, "prompt_repo_id": PROMPTS}
+    with pytest.raises(ValueError, match=f"does not use --policy.{option}={value}"):
+        make_policy(config_cls(**{**fields, option: value}), ds_meta=meta)
+    policy = make_policy(config_cls(**fields), ds_meta=meta)  # its defaults and the small configuration's
+    setattr(policy.config, option, value)  # as a checkpoint saved before the check would hold it
+    policy.save_pretrained(tmp_path)
+    assert getattr(type(policy).from_pretrained(tmp_path).config, option) == value

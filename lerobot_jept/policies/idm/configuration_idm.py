@@ -5,10 +5,11 @@ every unlabelled frame of a ``_mix`` repo an action; BC is ``jept_dt_star`` on t
 """
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_jept.policies.jept.configuration_jept import JEPTConfig
+from lerobot_jept.policies.jept.configuration_jept import JEPT_ONLY_OPTIONS, JEPTConfig
 
 
 @PreTrainedConfig.register_subclass("jept_idm")
@@ -26,6 +27,9 @@ class IDMConfig(JEPTConfig):
     trained backbone), ``optimizer_lr_predictor`` the Transformer and the action head.
     """
 
+    ignored_options: ClassVar[tuple[str, ...]] = tuple(
+        o for o in JEPT_ONLY_OPTIONS if o not in ("obs_head_hidden_dim", "obs_head_layers", "idm_input")
+    )
     recipe: str = "paper"  # JEPT's options at the paper's values: none of them applies to the IDM
     prompt_align_weight: float = 0.0
     prompt_swap_weight: float = 0.0

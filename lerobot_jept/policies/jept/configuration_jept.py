@@ -21,8 +21,10 @@ A small configuration that trains on a 2-core CPU is :meth:`JEPTConfig.small`, a
 lerobot-train config file ``examples/configs/train_jept_small_cpu.json``.
 """
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 from lerobot.configs.policies import PreTrainedConfig
@@ -369,6 +371,28 @@ class JEPTConfig(PreTrainedConfig):
         if self.phase_steps < 1:
             raise ValueError(f"phase_steps must be >= 1, got {self.phase_steps}.")
 
+    # JEPT's options that a policy type has no use for (each baseline sets its own): giving one is an error.
+    ignored_options: ClassVar[tuple[str, ...]] = ()
+
+    def refuse_ignored_options(self) -> None:
+        """Raise when an option this type ignores holds another value than it would have anyway (its default,
+        the small configuration's, the paper recipe's): a flag that would silently mean nothing. Checked when a
+        policy is made from this config, not when a saved checkpoint is loaded."""
+        given = []
+        for name in self.ignored_options:
+            value = getattr(self, name)
+            own = {f.name: f.default for f in dataclasses.fields(self)}[name]
+            jept = {f.name: f.default for f in dataclasses.fields(JEPTConfig)}[name]
+            allowed = [own, jept, SMALL_CPU_OVERRIDES.get(name, own), RECIPES["paper"].get(name, own)]
+            if value not in allowed:
+                given.append(f"--policy.{name}={value}")
+        if given:
+            raise ValueError(
+                f"--policy.type={self.type} does not use {', '.join(given)} (JEPT's option"
+                f"{'s' if len(given) > 1 else ''}, which this type has nothing to apply to): drop "
+                f"{'them' if len(given) > 1 else 'it'}, or train --policy.type=jept."
+            )
+
     @classmethod
     def small(cls, **overrides) -> "JEPTConfig":
         """The documented small configuration: trains on a 2-core CPU (random-initialised ResNet-10t
@@ -547,11 +571,38 @@ SMALL_CPU_OVERRIDES = dict(
 )
 
 
+# The options of JEPT's joint embedding prediction, its prompt terms, schedule and inverse dynamics.
+JEPT_ONLY_OPTIONS = (
+    "joint_embedding_dim",
+    "temporal_dim",
+    "temporal_heads",
+    "temporal_layers",
+    "temporal_ff_dim",
+    "temporal_dropout",
+    "obs_head_hidden_dim",
+    "obs_head_layers",
+    "action_loss_weight",
+    "state_loss_weight",
+    "ema_decay",
+    "phase_schedule",
+    "phase_steps",
+    "prompt_warmup_steps",
+    "prompt_align_weight",
+    "prompt_align_temperature",
+    "prompt_swap_weight",
+    "prompt_swap_margin",
+    "prompt_dropout",
+    "prompt_guidance",
+    "idm_input",
+)
+
+
 @dataclass
 class BehaviourCloningConfig(JEPTConfig):
     """Base of the baselines that clone actions from the k context frames (``jept_dt_star``, ``jept_vid2robot``): JEPT's
     sizes, no joint embedding target (so no prompt terms), samples of k frames without a next one."""
 
+    ignored_options: ClassVar[tuple[str, ...]] = JEPT_ONLY_OPTIONS
     recipe: str = "paper"  # JEPT's options at the paper's values: none of them applies to a baseline
     prompt_align_weight: float = 0.0
     prompt_swap_weight: float = 0.0
