@@ -379,10 +379,10 @@ class JEPTConfig(PreTrainedConfig):
         the small configuration's, the paper recipe's): a flag that would silently mean nothing. Checked when a
         policy is made from this config, not when a saved checkpoint is loaded."""
         given = []
+        own_defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        jept_defaults = {f.name: f.default for f in dataclasses.fields(JEPTConfig)}
         for name in self.ignored_options:
-            value = getattr(self, name)
-            own = {f.name: f.default for f in dataclasses.fields(self)}[name]
-            jept = {f.name: f.default for f in dataclasses.fields(JEPTConfig)}[name]
+            value, own, jept = getattr(self, name), own_defaults[name], jept_defaults[name]
             allowed = [own, jept, SMALL_CPU_OVERRIDES.get(name, own), RECIPES["paper"].get(name, own)]
             if value not in allowed:
                 given.append(f"--policy.{name}={value}")

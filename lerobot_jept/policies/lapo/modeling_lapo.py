@@ -75,12 +75,15 @@ class LAPOPolicy(DiscreteActionPolicy):
         m = self.model
         return self.prompted_lr_groups([m.transformer, m.latent_head, m.latent_model, m.decoder])
 
-    def transitions(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def transitions(
+        self, batch: dict[str, Tensor], frames: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The latent model on the sample's k transitions: latent values and level indices (B, k, dims), the
         forward loss per transition (B, k), and which transitions are real (B, k; both frames unpadded).
         Reads the frames and the self-state only."""
         m, k = self.model, self.config.n_obs_steps
-        frames, state = self.camera_frames(batch), batch[OBS_STATE]
+        frames = self.camera_frames(batch) if frames is None else frames
+        state = batch[OBS_STATE]
         pad = batch.get(f"{self.config.image_key}_is_pad")
         valid = torch.ones(state.shape[:2], dtype=torch.bool, device=state.device) if pad is None else ~pad
         valid = valid[:, :k] & valid[:, 1 : k + 1]
@@ -92,11 +95,12 @@ class LAPOPolicy(DiscreteActionPolicy):
 
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict]:
         cfg, m, k = self.config, self.model, self.config.n_obs_steps
-        latent, indices, error, valid = self.transitions(batch)
+        frames = self.camera_frames(batch)
+        latent, indices, error, valid = self.transitions(batch, frames)
         ok = valid.float()
         loss_forward = (error * ok).sum(1) / ok.sum(1).clamp_min(1)
 
-        obs = m.frame_tokens(self.camera_frames(batch)[:, :k], batch[OBS_STATE][:, :k])
+        obs = m.frame_tokens(frames[:, :k], batch[OBS_STATE][:, :k])
         logits = m.latent_logits(self.prompt(batch), obs)  # (B, k, dims, levels)
         targets = indices.masked_fill(~valid[..., None], IGNORE_INDEX)
         ce = F.cross_entropy(
