@@ -35,7 +35,8 @@ def tiny_config(config_cls=JEPTConfig, **overrides) -> JEPTConfig:
         phase_schedule="joint",
         prompt_warmup_steps=0,
     )
-    fields = {k: v for k, v in fields.items() if k not in config_cls.ignored_options}  # a baseline refuses them
+    # A baseline refuses the JEPT options it ignores.
+    fields = {k: v for k, v in fields.items() if k not in config_cls.ignored_options}
     return config_cls.small(**{**fields, **overrides})
 
 
