@@ -2,11 +2,13 @@
 read, before any policy is trained.
 
     jept-screen --probe_repo_id=local/t_probe \\
-        --arms='{demos: [local/t_demo], demos + play: [local/t_demo, local/t_play]}' [--steps=1] [--seeds='[0,1,2]']
+        --arms='{demos: [local/t_demo], demos + play: [local/t_demo, local/t_play]}' [--steps=1] [--history=0] \\
+        [--seeds='[0,1,2]']
 
 JEPT (and BC+IDM) act on a task seen only as video through inverse dynamics learned from labelled frames
 (P(a_t | s_t, s_t+1)). Whether a change to the labelled data (play episodes, random expert actions, more demo
-tasks) or to the inverse dynamics' input (``--steps``: the next ``steps`` self-state changes) can help is a
+tasks) or to the inverse dynamics' input (``--steps``: the next ``steps`` self-state changes; ``--history``: the
+``history`` changes before t as well) can help is a
 property of the data, measured here in minutes: per arm (a list of labelled repos), an MLP on the true
 self-state changes is fitted on every labelled frame of the arm's repos, once per seed, and scored on the
 held-out labelled episodes of ``--probe_repo_id`` (a build's ``_probe``). Per probe task and arm it reports
@@ -42,6 +44,7 @@ class ScreenConfig:
     arms: dict[str, list[str]] = field(default_factory=dict)  # arm name -> labelled repos it is fitted on
     root: Path | None = None  # parent folder of every repo (default: $HF_LEROBOT_HOME)
     steps: int = 1  # self-state changes after t given to the model (1 = the next frame only)
+    history: int = 0  # self-state changes before t given as well (the arm's lag behind its commanded motion)
     with_state: bool = False  # also give the model s_t itself, as JEPT's self-state inverse dynamics has it
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])  # one fitted model per seed and arm
     num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
@@ -60,10 +63,12 @@ def load_frames(
     num_bins: int,
     features: str = "state",
     with_state: bool = False,
+    history: int = 0,
 ) -> dict[str, np.ndarray]:
-    """Every frame t with ``steps`` frames after it in its episode: state changes (preceded by s_t itself with
-    ``with_state``; or, for ``pixels``, the uint8 frames o_t .. o_t+steps stacked on the channels), binned
-    action, task (the builder's task name where the repo has build metadata, else the task string)."""
+    """Every frame t with ``history`` frames before it and ``steps`` after it in its episode: the ``history``
+    self-state changes up to s_t, then the ``steps`` after it (preceded by s_t itself with ``with_state``; or,
+    for ``pixels``, the uint8 frames o_t .. o_t+steps stacked on the channels), binned action, task (the
+    builder's task name where the repo has build metadata, else the task string)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
@@ -86,7 +91,7 @@ def load_frames(
     inputs, labels, frame_tasks = [], [], []
     for ep in tqdm(np.unique(episode), desc=f"{repo_id} episodes", unit="ep", leave=False):
         rows = np.flatnonzero(episode == ep)
-        starts = range(len(rows) - steps)
+        starts = range(history, len(rows) - steps)
         if features == "pixels":
             images = np.stack([(dataset[int(r)][image_key].numpy() * 255).round() for r in rows]).astype(
                 np.uint8
@@ -95,7 +100,7 @@ def load_frames(
         else:
             delta = np.diff(state[rows], axis=0)
             own = state[rows] if with_state else np.zeros((len(rows), 0), state.dtype)
-            inputs += [np.concatenate([own[t], delta[t : t + steps].reshape(-1)]) for t in starts]
+            inputs += [np.concatenate([own[t], delta[t - history : t + steps].reshape(-1)]) for t in starts]
         for t in starts:
             labels.append(to_bin_indices(action[rows[t]], num_bins))
             frame_tasks.append(task_of[int(task_index[rows[t]])])
@@ -176,20 +181,20 @@ def probe_split(cfg: ScreenConfig) -> dict[str, str]:
 
 def screen(cfg: ScreenConfig) -> dict:
     """Fit every arm once per seed and score it on the probe repo; returns the per-task and summary results."""
-    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins, with_state=cfg.with_state)
+    inputs = {"with_state": cfg.with_state, "history": cfg.history}
+    probe = load_frames(cfg.probe_repo_id, cfg.root, cfg.steps, cfg.num_bins, **inputs)
     split = probe_split(cfg)
     rng = np.random.default_rng(0)
     results: dict = {
         "probe_repo_id": cfg.probe_repo_id,
         "steps": cfg.steps,
         "with_state": cfg.with_state,
+        "history": cfg.history,
         "seeds": cfg.seeds,
         "arms": {},
     }
     for arm, repos in cfg.arms.items():
-        train = concat_frames(
-            [load_frames(r, cfg.root, cfg.steps, cfg.num_bins, with_state=cfg.with_state) for r in repos]
-        )
+        train = concat_frames([load_frames(r, cfg.root, cfg.steps, cfg.num_bins, **inputs) for r in repos])
         if len(train["x"]) > cfg.max_frames:
             keep = rng.choice(len(train["x"]), cfg.max_frames, replace=False)
             train = {key: value[keep] for key, value in train.items()}
@@ -230,7 +235,8 @@ def markdown(results: dict) -> str:
     first = results["arms"][arms[0]]["per_task"]
     lines = [
         f"Inverse dynamics on the next {results['steps']} self-state change(s)"
-        f"{' and s_t' if results.get('with_state') else ''}, fitted per arm on its labelled "
+        f"{' and s_t' if results.get('with_state') else ''}"
+        f"{f' after the {h} before it' if (h := results.get('history')) else ''}, fitted per arm on its labelled "
         f"frames, scored on {results['probe_repo_id']}; whole-action accuracy, mean [95% interval] over seeds "
         f"{results['seeds']} (share of frames whose action the arm's labels contain).",
         "",
@@ -302,6 +308,10 @@ def main(args: list[str] | None = None) -> None:
         )
     if cfg.steps < 1:
         raise SystemExit(f"jept-screen: error: --steps must be at least 1 (the next frame), got {cfg.steps}.")
+    if cfg.history < 0:
+        raise SystemExit(
+            f"jept-screen: error: --history must be 0 or more (changes before t), got {cfg.history}."
+        )
     if not cfg.seeds:
         raise SystemExit("jept-screen: error: --seeds must name at least one seed.")
     try:

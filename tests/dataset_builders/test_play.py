@@ -105,6 +105,17 @@ def test_screen_refuses_unlabelled_repos_and_missing_arms(play_build, tmp_path):
     with_state = load_frames("test/play_play", None, steps=2, num_bins=7, with_state=True)
     assert with_state["x"].shape[1] == 3 * STATE_DIM  # s_t, then the two changes
     np.testing.assert_array_equal(with_state["x"][:, STATE_DIM:], frames["x"])
+    # --history=1: the change into s_t first, then the next one; each episode loses its first frame
+    one = load_frames("test/play_play", None, steps=1, num_bins=7)
+    past = load_frames("test/play_play", None, steps=1, num_bins=7, history=1)
+    episodes = len(one["x"]) - len(past["x"])
+    assert episodes > 0 and past["x"].shape[1] == 2 * STATE_DIM
+    np.testing.assert_array_equal(
+        past["x"][1, :STATE_DIM], past["x"][0, STATE_DIM:]
+    )  # same episode, t -> t+1
+    np.testing.assert_array_equal(past["x"][:, STATE_DIM:][:5], one["x"][1:6])
+    with pytest.raises(SystemExit, match="--history must be 0 or more"):
+        main(["--probe_repo_id=test/play_probe", "--arms={p: [test/play_play]}", "--history=-1"])
 
 
 def test_play_flag_is_checked():
