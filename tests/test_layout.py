@@ -102,3 +102,12 @@ def test_lerobots_shape_one_folder_per_policy_type():
         "study",
         "envs",
     }
+
+
+def test_tests_mirror_the_packages():
+    """Each folder of tests is a folder of the product (a package, a sub-package or examples/), so a module's
+    tests are found where the module is."""
+    folders = {p.parent for p in (ROOT / "tests").rglob("test_*.py")} - {ROOT / "tests"}
+    assert len(folders) >= 7
+    for folder in folders:
+        assert (ROOT / folder.relative_to(ROOT / "tests")).is_dir(), folder

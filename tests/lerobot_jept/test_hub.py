@@ -23,7 +23,7 @@ from huggingface_hub.utils import filter_repo_objects
 
 from dataset_builders.core import BuildError, BuildPaths, push_repos
 from tests.conftest import load
-from tests.lerobot_jept.test_policy import MIX, PROMPTS, build_policy
+from tests.lerobot_jept.policies.test_policy import MIX, PROMPTS, build_policy
 
 ROOT = Path(__file__).parents[2]
 BIN = Path(sys.executable).parent

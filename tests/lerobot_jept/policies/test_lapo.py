@@ -11,7 +11,7 @@ from lerobot_jept.policies.components.latent_action import (
     LatentActionDecoder,
     LatentActionModel,
 )
-from tests.lerobot_jept.test_baselines import build
+from tests.lerobot_jept.policies.test_baselines import build
 
 
 def test_quantizer_rounds_to_its_levels_and_passes_gradients():

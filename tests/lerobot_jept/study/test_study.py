@@ -30,9 +30,9 @@ from lerobot_jept.study.run import (
     write_report,
 )
 from tests.conftest import TINY
-from tests.lerobot_jept.test_baselines import suite_output
+from tests.lerobot_jept.policies.test_baselines import suite_output
 
-REPO = Path(__file__).parents[2]
+REPO = Path(__file__).parents[3]
 CONFIGS = REPO / "examples/configs"
 SPLIT = {"demo": ["a"], "video": ["b"], "unseen": ["c"]}
 

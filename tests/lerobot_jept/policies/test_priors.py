@@ -12,7 +12,7 @@ from lerobot_jept.policies.components.backbone import (
     SpatialBackbone,
     expected_weights,
 )
-from tests.lerobot_jept.test_policy import build_policy, mixed_batch
+from tests.lerobot_jept.policies.test_policy import build_policy, mixed_batch
 
 SIZE = 64
 PRIORS = {  # name -> tokens per frame at 64 px

@@ -8,7 +8,7 @@ from lerobot_jept import JEPTConfig
 from lerobot_jept.policies.components.perceiver import PerceiverIO
 from lerobot_jept.policies.jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.policies.vid2robot.configuration_vid2robot import Vid2RobotConfig
-from tests.lerobot_jept.test_policy import build_policy, mixed_batch
+from tests.lerobot_jept.policies.test_policy import build_policy, mixed_batch
 
 
 def loss_and_grads(policy, batch):

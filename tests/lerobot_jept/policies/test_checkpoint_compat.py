@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).parents[2]
+ROOT = Path(__file__).parents[3]
 FLAT_LAYOUT = "571a56916710c30c47368832c9a29038c80516ed"  # the last commit of the flat layout
 TYPES = {
     "jept": "JEPTConfig",
