@@ -11,7 +11,7 @@ mate it prints the share of frames whose binned whole action differs, and per di
 the swap rate a policy that follows its prompt the way the experts do would show on these states. A mate expert
 reads the state as its own task's observation (Meta-World's scripted policies key on the hand and object
 positions), so the figure is the mate's own rule applied off its task's start states. Used in
-docs/results.md (the measurement log), section 11.
+docs/results.md, "How often should a scene-mate's prompt change the action?".
 """
 
 from dataclasses import dataclass, field

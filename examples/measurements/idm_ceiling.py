@@ -19,7 +19,8 @@ learned on the demo tasks (P(a_t | o_t, o_t+1), Section 3.2). Per task of the la
   the h_t+1 the checkpoint predicts, what it would act from.
 
 On the demo tasks' own held-out episodes this is near 1; how far it falls on a video-only task bounds what any
-inverse dynamics fitted on these demos can reach there. Used in docs/results.md (the measurement log), sections 7, 8 and 13.
+inverse dynamics fitted on these demos can reach there. Used in docs/results.md ("With the paper's inverse
+dynamics the videos do not help").
 """
 
 from dataclasses import dataclass

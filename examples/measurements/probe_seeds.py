@@ -10,7 +10,7 @@ Student's t interval over seeds and the per-seed values of the probe's measures,
 is the first arm's mean ``control`` whole-action accuracy on the task above the second arm's by more than the
 spread over seeds (the larger of the two arms' ranges, max - min)? Beside it, Welch's t-test of the same
 difference (its 95% interval and two-sided p), which does not grow stricter as seeds are added the way a range
-does. Used in docs/results.md (the measurement log), sections 15-20.
+does. Used throughout docs/results.md.
 """
 
 import json

@@ -145,7 +145,7 @@ class JEPTConfig(PreTrainedConfig):
             ``state_loss_weight``), and the inverse dynamics is an MLP from (s_t, s_{t+1} - s_t) to the action
             bins, trained on the demos' real changes and run on the predicted one. The self-state is the part of
             the observation whose change tells the action in every scene, so this inverse dynamics carries
-            over to the video-only tasks (docs/results.md (the measurement log), section 16).
+            over to the video-only tasks (docs/results.md, "Inverse dynamics on the self-state").
         state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
             divided by its running RMS); used with ``idm_input="self_state"`` only.
         ema_decay: decay of the EMA target encoder (not given by the paper; I-JEPA's 0.996).
