@@ -15,8 +15,8 @@ from examples.measurements.idm_ceiling import (
 from lerobot_jept.evaluation.prompt_probe import probe_frames
 from lerobot_jept.policies.discretization import to_bin_indices
 from tests.conftest import TINY, load
-from tests.lerobot_jept.test_hub import checkpoint  # noqa: F401  (the saved tiny checkpoint, a fixture)
 from tests.lerobot_jept.policies.test_policy import tiny_config
+from tests.lerobot_jept.test_hub import checkpoint  # noqa: F401  (the saved tiny checkpoint, a fixture)
 
 
 def test_frames_pair_each_action_with_the_next_state_change(tiny_build):

@@ -16,8 +16,8 @@ from lerobot_jept.policies.components.token_groups import DT_STAR_RULES, TokenGr
 from lerobot_jept.policies.jept.configuration_jept import SMALL_CPU_OVERRIDES
 from lerobot_jept.policies.jept.modeling_jept import IGNORE_INDEX
 from tests.conftest import load
-from tests.lerobot_jept.test_end_to_end import MIX, PROMPTS, lerobot_eval, run
 from tests.lerobot_jept.policies.test_policy import mixed_batch
+from tests.lerobot_jept.test_end_to_end import MIX, PROMPTS, lerobot_eval, run
 
 NO_DROPOUT = dict(frame_perceiver_dropout=0.0, prompt_perceiver_dropout=0.0, predictor_dropout=0.0)
 
