@@ -144,6 +144,7 @@ def make_state_inverse_dynamics(config: JEPTConfig) -> SelfStateInverseDynamics:
         config.num_action_bins,
         config.obs_head_hidden_dim,
         config.obs_head_layers,
+        config.idm_history,
     )
 
 
@@ -437,10 +438,12 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         labels[(labels == IGNORE_INDEX).any(-1)] = IGNORE_INDEX  # a frame is labelled in full or not at all
         return labels
 
-    def action_loss(self, logits: Tensor, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """Cross-entropy over the bins of logits (B, T, A, bins) on labelled frames only (eq. 8) -> per-sample
-        loss (B,) (mean over the sample's labelled frames, 0 without any) and the labelled mask (B, T, A)."""
+    def action_loss(self, logits: Tensor, batch: dict[str, Tensor], first: int = 0) -> tuple[Tensor, Tensor]:
+        """Cross-entropy over the bins of logits (B, T, A, bins) on labelled frames only (eq. 8), from frame
+        ``first`` on -> per-sample loss (B,) (mean over the sample's labelled frames, 0 without any) and the
+        labelled mask (B, T, A)."""
         labels = self.action_labels(batch, logits.shape[:3])
+        labels[:, :first] = IGNORE_INDEX
         ce = F.cross_entropy(
             rearrange(logits, "b t a c -> b c t a"), labels, ignore_index=IGNORE_INDEX, reduction="none"
         )

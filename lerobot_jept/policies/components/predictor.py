@@ -4,6 +4,7 @@ transformer (the predictor without the joint embedding tokens)."""
 import torch
 from einops import rearrange, repeat
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from lerobot_jept.policies.components.attention import CrossAttentionBlock, SelfAttentionStack, StepPositions
 from lerobot_jept.policies.components.token_groups import (
@@ -160,19 +161,30 @@ class ActionHead(nn.Module):
 
 class SelfStateInverseDynamics(nn.Module):
     """``idm_input="self_state"``: Gamma_state predicts the self-state change s_{t+1} - s_t (each dimension in
-    units of its running RMS) from the o_t tokens' hidden states, and an MLP maps (s_t, change) to action logits.
+    units of its running RMS) from the o_t tokens' hidden states, and an MLP maps (s_t, change) to action logits;
+    with ``history`` h > 0 it also reads the h observed changes into s_t (the arm lags its commanded motion, and
+    how far it lags tells the action apart).
 
-    ``change_of`` (B, T + 1, S) states -> (B, T, S) scaled changes; ``predict_change`` (B, T, N, width) ->
-    (B, T, S); ``forward`` (..., S) states and (..., S) changes -> logits (..., action_dim, num_bins).
+    ``change_of`` (B, T + 1, S) states -> (B, T, S) scaled changes; ``past_changes`` (B, T, S) states ->
+    (B, T, h * S); ``predict_change`` (B, T, N, width) -> (B, T, S); ``forward`` (..., S) states, (..., S) changes
+    and (..., h * S) past changes -> logits (..., action_dim, num_bins).
     """
 
     def __init__(
-        self, width: int, state_dim: int, action_dim: int, num_bins: int, hidden_dim: int, layers: int
+        self,
+        width: int,
+        state_dim: int,
+        action_dim: int,
+        num_bins: int,
+        hidden_dim: int,
+        layers: int,
+        history: int = 0,
     ):
         super().__init__()
         self.change_head = ObservationHead(width, state_dim, hidden_dim, layers)
-        self.inverse = ObservationHead(2 * state_dim, action_dim * num_bins, hidden_dim, layers)
+        self.inverse = ObservationHead((2 + history) * state_dim, action_dim * num_bins, hidden_dim, layers)
         self.action_dim = action_dim
+        self.history = history
         self.register_buffer("scale", torch.ones(state_dim))
         self.register_buffer("scale_updates", torch.zeros((), dtype=torch.long))
 
@@ -186,9 +198,20 @@ class SelfStateInverseDynamics(nn.Module):
     def change_of(self, state: Tensor) -> Tensor:
         return (state[:, 1:] - state[:, :-1]) / self.scale
 
+    def past_changes(self, state: Tensor) -> Tensor:
+        """(B, T, S) states -> (B, T, h * S): for each frame the h scaled changes into it, oldest first; zero
+        where the window does not reach back (as at an episode's start, whose first frame LeRobot repeats)."""
+        if self.history == 0:
+            return state[..., :0]
+        changes = F.pad(self.change_of(state), (0, 0, self.history, 0))  # (B, T - 1 + h, S)
+        return rearrange(changes.unfold(1, self.history, 1), "b t s h -> b t (h s)")
+
     def predict_change(self, z_obs: Tensor) -> Tensor:
         return self.change_head(z_obs.mean(-2))
 
-    def forward(self, state: Tensor, change: Tensor) -> Tensor:
-        logits = self.inverse(torch.cat([state, change], dim=-1))
+    def forward(self, state: Tensor, change: Tensor, past: Tensor | None = None) -> Tensor:
+        if past is None and self.history:
+            raise ValueError(f"this inverse dynamics reads the {self.history} changes into s_t: pass `past`.")
+        inputs = [state, change] if past is None else [state, change, past]
+        logits = self.inverse(torch.cat(inputs, dim=-1))
         return rearrange(logits, "... (a c) -> ... a c", a=self.action_dim)

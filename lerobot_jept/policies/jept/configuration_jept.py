@@ -146,6 +146,11 @@ class JEPTConfig(PreTrainedConfig):
             bins, trained on the demos' real changes and run on the predicted one. The self-state is the part of
             the observation whose change tells the action in every scene, so this inverse dynamics carries
             over to the video-only tasks (docs/results.md, "Inverse dynamics on the self-state").
+        idm_history: with ``idm_input="self_state"`` (not in the paper), the observed self-state changes into
+            s_t the inverse dynamics reads beside the next one (0: s_t and the next change only; at most
+            ``n_obs_steps - 1``). The arm lags its commanded motion, so the change into s_t tells how far:
+            ``jept-screen --history=1`` lifts the share of the video-only tasks' actions readable from the true
+            changes by 5-6 points on both transfer builds (docs/results.md, "Screening levers").
         state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
             divided by its running RMS); used with ``idm_input="self_state"`` only.
         ema_decay: decay of the EMA target encoder (not given by the paper; I-JEPA's 0.996).
@@ -271,6 +276,7 @@ class JEPTConfig(PreTrainedConfig):
     action_loss_weight: float = 8.0
     recipe: str = "plus"
     idm_input: str | None = None  # None: the recipe's
+    idm_history: int = 0
     state_loss_weight: float = 1.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
@@ -336,6 +342,16 @@ class JEPTConfig(PreTrainedConfig):
             raise ValueError(
                 f"idm_input must be one of {IDM_INPUTS}, got {self.idm_input!r}: pass "
                 "--policy.idm_input=embedding (the paper) or self_state."
+            )
+        if not 0 <= self.idm_history < self.n_obs_steps:
+            raise ValueError(
+                f"idm_history must be in [0, n_obs_steps - 1] = [0, {self.n_obs_steps - 1}] (the changes into s_t "
+                f"the context holds), got {self.idm_history}."
+            )
+        if self.idm_history and self.idm_input != "self_state":
+            raise ValueError(
+                f"idm_history={self.idm_history} is read by the self-state inverse dynamics only: add "
+                "--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.idm_history."
             )
         if not 0.0 <= self.prompt_dropout < 1.0:
             raise ValueError(f"prompt_dropout is a probability in [0, 1), got {self.prompt_dropout}.")
@@ -594,6 +610,7 @@ JEPT_ONLY_OPTIONS = (
     "prompt_dropout",
     "prompt_guidance",
     "idm_input",
+    "idm_history",
 )
 
 

@@ -141,7 +141,9 @@ class JEPT(VisualPolicyNet):
         if sd is None:
             return pred_h, self.action_head(z_emb), None
         k = obs.shape[1]
-        logits = None if state is None else sd(state[:, :k], sd.change_of(state[:, : k + 1]))
+        if state is None:
+            return pred_h, None, sd.predict_change(z_obs)
+        logits = sd(state[:, :k], sd.change_of(state[:, : k + 1]), sd.past_changes(state[:, :k]))
         return pred_h, logits, sd.predict_change(z_obs)
 
     @torch.no_grad()
@@ -207,8 +209,9 @@ class JEPTPolicy(DiscreteActionPolicy):
         pred_h, logits, change = m.predict(prompt_in, obs[:, :k], h_in, batch[OBS_STATE])
         loss_obs, dist, frame_ok = self._obs_loss(batch, pred_h, targets)
 
-        # L_act (eq. 8): cross-entropy over the bins on labelled frames only.
-        loss_act, labelled = self.action_loss(logits, batch)
+        # L_act (eq. 8): cross-entropy over the bins on labelled frames only (with ``idm_history`` h, not on the
+        # window's first h frames, whose changes into them the window does not hold).
+        loss_act, labelled = self.action_loss(logits, batch, first=cfg.idm_history)
         per_sample = loss_obs + cfg.action_loss_weight * loss_act
         extra, extra_info = self._prompt_losses(
             batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok, kept
@@ -303,7 +306,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.prompt(batch) if self.prompt_active else None
         pred_h, logits, _ = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
         return {
-            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], batch[OBS_STATE][:, k - 1]),
+            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], batch[OBS_STATE][:, :k]),
             "inverse": logits[:, -1],
             "loss_obs": self._obs_loss(batch, pred_h, targets)[0],
         }
@@ -339,12 +342,13 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
-        return self.bin_actions(self._control_logits(prompt, obs, h_past, batch[OBS_STATE]).argmax(-1))
+        states = torch.stack([state for _, state in self._frames], 1)  # s_{t-k+1} .. s_t
+        return self.bin_actions(self._control_logits(prompt, obs, h_past, states).argmax(-1))
 
-    def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, state: Tensor) -> Tensor:
-        """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and s_t
-        (B, S): the inverse dynamics of the predicted h_{t+1} or, with ``idm_input="self_state"``, of the
-        self-state change predicted from o_t's tokens. With ``prompt_guidance`` w, that prediction x (the change,
+    def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, states: Tensor) -> Tensor:
+        """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and the
+        self-states s_{t-k+1..t} (B, k, S): the inverse dynamics of the predicted h_{t+1} or, with
+        ``idm_input="self_state"``, of the self-state change predicted from o_t's tokens. With ``prompt_guidance`` w, that prediction x (the change,
         else the logits) becomes x + w (x - x_null), x_null the one under the learned null prompt
         (``prompt_dropout``) or, without one, with no prompt (the prompt warm-up's prediction)."""
         cfg, m = self.config, self.model
@@ -363,4 +367,5 @@ class JEPTPolicy(DiscreteActionPolicy):
         if cfg.prompt_guidance and prompt is not None:
             null = None if m.null_prompt is None else m.null_prompt(prompt)
             x = x + cfg.prompt_guidance * (x - predicted(null))
-        return x if m.state_dynamics is None else m.state_dynamics(state, x)
+        sd = m.state_dynamics
+        return x if sd is None else sd(states[:, -1], x, sd.past_changes(states)[:, -1])

@@ -479,14 +479,20 @@ def test_validate_features_action_checks():
     ).validate_features()  # expert videos only
 
 
-def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_change(tiny_build, tmp_path):
+@pytest.mark.parametrize("history", [0, 1])
+def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_change(
+    tiny_build, tmp_path, history
+):
     """idm_input=self_state: Gamma_state learns the self-state change on every frame, the inverse dynamics learns
-    the actions from the real change, and control acts on the predicted change: select_action over an episode's
-    frames gives what offline_outputs' control gives on the same window; the running scale is saved."""
+    the actions from the real change (with idm_history, and the observed change into s_t), and control acts on the
+    predicted change: select_action over an episode's frames gives what offline_outputs' control gives on the
+    same window; the running scale is saved."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-    policy, pre, _ = build_policy(tiny_build, idm_input="self_state")
+    policy, pre, _ = build_policy(tiny_build, idm_input="self_state", idm_history=history)
     assert policy.model.action_head is None and policy.model.state_dynamics is not None
+    state_dim = policy.config.input_features["observation.state"].shape[0]
+    assert policy.model.state_dynamics.inverse.mlp[0].in_features == (2 + history) * state_dim
     first, info = overfit(policy, pre)
     assert {"loss_state", "loss_act", "loss_obs"} <= set(first)
     assert info["loss_act"] < 0.5 * first["loss_act"]
@@ -519,6 +525,27 @@ def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_chan
 def test_idm_input_must_be_known():
     with pytest.raises(ValueError, match="--policy.idm_input=embedding"):
         tiny_config(idm_input="state")
+    with pytest.raises(ValueError, match="idm_history must be in"):
+        tiny_config(idm_input="self_state", idm_history=tiny_config().n_obs_steps)
+    with pytest.raises(ValueError, match="add --policy.idm_input=self_state"):
+        tiny_config(idm_input="embedding", idm_history=1)
+
+
+def test_past_changes_are_the_scaled_changes_into_each_frame_oldest_first():
+    from lerobot_jept.policies.components.predictor import SelfStateInverseDynamics
+
+    sd = SelfStateInverseDynamics(8, 2, 4, 7, 16, 2, history=2)
+    sd.scale.fill_(2.0)
+    state = torch.tensor([[[0.0, 0.0], [1.0, 2.0], [3.0, 6.0], [6.0, 12.0]]])  # changes (1,2) (2,4) (3,6)
+    past = sd.past_changes(state)
+    assert past.shape == (1, 4, 4)
+    expected = torch.tensor([[0, 0, 0, 0], [0, 0, 1, 2], [1, 2, 2, 4], [2, 4, 3, 6]]).float() / 2
+    torch.testing.assert_close(past[0], expected)
+    logits = sd(state[:, :3], sd.change_of(state), past[:, :3])
+    assert logits.shape == (1, 3, 4, 7)
+    with pytest.raises(ValueError, match="pass `past`"):
+        sd(state[:, :3], sd.change_of(state))
+    assert SelfStateInverseDynamics(8, 2, 4, 7, 16, 2).past_changes(state).shape == (1, 4, 0)
 
 
 @pytest.mark.parametrize("idm_input, dropout", [("embedding", 0.5), ("self_state", 0.5), ("self_state", 0.0)])
