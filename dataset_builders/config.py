@@ -23,15 +23,22 @@ ROLE_SEED_BASE = {
     "probe": 30_000_000,
     "play": 40_000_000,
 }
-# Flags added after builds were made, with the value a build recorded without one had: None = the value given
-# now (its shards are recorded on top of the existing ones, so an older build resumes with today's defaults).
-ADDED_FLAGS = {"probe_episodes_per_task": None, "expert_random_prob": 0.0, "play_episodes_per_task": 0}
+# Flags added after builds were made, with the value a build recorded without one had: GIVEN_NOW = the value
+# given now (its shards are recorded on top of the existing ones, so an older build resumes with today's defaults).
+GIVEN_NOW = "given now"
+ADDED_FLAGS = {
+    "probe_episodes_per_task": GIVEN_NOW,
+    "expert_random_prob": 0.0,
+    "play_episodes_per_task": 0,
+    "video_episodes_per_task": None,  # episodes_per_task's
+}
 # Flags that change what is written; a repo built with other values is never mixed with new episodes.
 CONTENT_FLAGS = (
     "demo_tasks",
     "video_tasks",
     "unseen_tasks",
     "episodes_per_task",
+    "video_episodes_per_task",
     "prompts_per_task",
     "probe_episodes_per_task",
     "play_episodes_per_task",
@@ -94,6 +101,8 @@ class BuildConfig:
         video_tasks: T_vid, tasks recorded as expert videos without actions.
         unseen_tasks: T_unseen, tasks that only get prompt videos.
         episodes_per_task: successful expert episodes per demo/video task.
+        video_episodes_per_task: expert videos per video-only task instead (default ``episodes_per_task``):
+            more videos of a task is one lever for executing it, and they cost no labels.
         prompts_per_task: prompt videos per task (all three splits), seeds disjoint from training episodes.
         probe_episodes_per_task: held-out labelled episodes per task (all three splits) in ``<repo_id>_probe``,
             seeds disjoint from every other role; 0 for none.
@@ -131,6 +140,7 @@ class BuildConfig:
     video_tasks: list[str] = field(default_factory=list)
     unseen_tasks: list[str] = field(default_factory=list)
     episodes_per_task: int = 500
+    video_episodes_per_task: int | None = None
     prompts_per_task: int = 10
     probe_episodes_per_task: int = 4
     play_episodes_per_task: int = 0
@@ -166,6 +176,12 @@ class BuildConfig:
 
     def content_flags(self) -> dict:
         return {name: getattr(self, name) for name in CONTENT_FLAGS}
+
+    def videos_per_task(self) -> int:
+        """Expert videos recorded per video-only task."""
+        return (
+            self.episodes_per_task if self.video_episodes_per_task is None else self.video_episodes_per_task
+        )
 
 
 class Simulator(abc.ABC):
@@ -220,6 +236,11 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
     for name in ("episodes_per_task", "prompts_per_task", "image_size", "num_workers", "episodes_per_shard"):
         if getattr(cfg, name) < 1:
             raise BuildError(f"--{name} must be at least 1, got {getattr(cfg, name)}.")
+    if cfg.video_episodes_per_task is not None and cfg.video_episodes_per_task < 1:
+        raise BuildError(
+            f"--video_episodes_per_task must be at least 1 (or left out: --episodes_per_task's), got "
+            f"{cfg.video_episodes_per_task}."
+        )
     for name in ("probe_episodes_per_task", "play_episodes_per_task"):
         if getattr(cfg, name) < 0:
             raise BuildError(f"--{name} must be 0 or more, got {getattr(cfg, name)}.")

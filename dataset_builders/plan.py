@@ -8,6 +8,7 @@ from pathlib import Path
 from dataset_builders.config import (
     ADDED_FLAGS,
     BUILD_FILE,
+    GIVEN_NOW,
     ROLE_SEED_BASE,
     ROLES,
     SEED_BLOCK,
@@ -40,7 +41,7 @@ def plan_shards(cfg: BuildConfig) -> list[Shard]:
     """Every shard of the build, in the order episodes appear in the repos."""
     jobs = [
         ("demo", cfg.demo_tasks, cfg.episodes_per_task),
-        ("video", cfg.video_tasks, cfg.episodes_per_task),
+        ("video", cfg.video_tasks, cfg.videos_per_task()),
         ("play", cfg.play_tasks(), cfg.play_episodes_per_task),
     ]
     all_tasks = [*cfg.demo_tasks, *cfg.video_tasks, *cfg.unseen_tasks]
@@ -90,7 +91,7 @@ def check_existing(paths: BuildPaths, cfg: BuildConfig, sim: Simulator) -> dict 
         return None
     record = json.loads(record_path.read_text())
     wanted = {"simulator": sim.name, **cfg.content_flags()}
-    added = {name: wanted[name] if old is None else old for name, old in ADDED_FLAGS.items()}
+    added = {name: wanted[name] if old == GIVEN_NOW else old for name, old in ADDED_FLAGS.items()}
     previous = {"simulator": record.get("simulator"), **added, **record.get("flags", {})}
     changed = [f"--{k}={previous.get(k)!r} (now {v!r})" for k, v in wanted.items() if previous.get(k) != v]
     if changed:

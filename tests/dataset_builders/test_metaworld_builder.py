@@ -230,6 +230,32 @@ def test_build_recorded_before_the_random_action_flag_counts_as_zero(tiny_build)
     assert json.loads(record_path.read_text())["flags"]["expert_random_prob"] == 0.0
 
 
+def test_video_episodes_per_task_sets_the_videos_per_video_only_task(tiny_build):
+    """--video_episodes_per_task records that many videos per video-only task and leaves the demos at
+    --episodes_per_task; a build recorded before the flag had as many of each, so it resumes without it and is
+    refused with it."""
+    from dataset_builders.plan import plan_shards
+
+    cfg, _ = tiny_build
+    more = dataclasses.replace(cfg, video_episodes_per_task=5)
+    count = {}
+    for shard in plan_shards(more):
+        count[shard.role, shard.task] = count.get((shard.role, shard.task), 0) + shard.num_episodes
+    assert count["video", "drawer-close-v3"] == 5 and count["demo", "reach-v3"] == cfg.episodes_per_task
+    assert sum(s.num_episodes for s in plan_shards(cfg) if s.role == "video") == cfg.episodes_per_task
+    with pytest.raises(BuildError, match="--video_episodes_per_task must be at least 1"):
+        build(dataclasses.replace(cfg, video_episodes_per_task=0), SIM)
+
+    record_path = lerobot_home() / "test/mw_tiny.build" / BUILD_FILE
+    record = json.loads(record_path.read_text())
+    record["flags"].pop("video_episodes_per_task", None)
+    record_path.write_text(json.dumps(record))
+    with pytest.raises(BuildError, match="--video_episodes_per_task=None \\(now 5\\)"):
+        build(more, SIM)
+    build(cfg, SIM)
+    assert json.loads(record_path.read_text())["flags"]["video_episodes_per_task"] is None
+
+
 @pytest.mark.parametrize("random_prob", [0.0, 0.3])
 def test_expert_random_prob_replaces_that_share_of_expert_actions(random_prob):
     """With --expert_random_prob=p about a share p of the steps record a random bin action instead of the
