@@ -190,7 +190,7 @@ class JeptMetaworldEnv(spec.OneImagePerState):
         state = np.concatenate(
             [data.qpos[:NUM_ARM_JOINTS], data.qvel[:NUM_ARM_JOINTS], self._raw_obs[:4]]
         ).astype(np.float32)
-        return {"pixels": self.render(), "agent_pos": state}
+        return {"pixels": self.observed_image(), "agent_pos": state}
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._ensure_env()

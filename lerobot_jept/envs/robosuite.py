@@ -161,7 +161,7 @@ class JeptRobosuiteEnv(spec.OneImagePerState):
         return np.concatenate([joints, o["robot0_eef_pos"], o["robot0_eef_quat"], gripper]).astype(np.float32)
 
     def _observation(self) -> dict:
-        return {"pixels": self.render(), "agent_pos": self._state()}
+        return {"pixels": self.observed_image(), "agent_pos": self._state()}
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._ensure_env()

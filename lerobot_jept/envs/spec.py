@@ -11,11 +11,17 @@ class OneImagePerState(gym.Env, ABC):
     """A simulator env whose camera image is drawn once per state.
 
     The observation and a later ``render`` (LeRobot's eval draws every step again for its videos) share one
-    image, which halves the rendering of an evaluated rollout. Subclasses draw in ``_draw`` and call
-    ``_state_changed`` whenever the simulator's state may change (reset, step, close).
+    image, which halves the rendering of an evaluated rollout. Subclasses draw in ``_draw``, call
+    ``_state_changed`` whenever the simulator's state may change (reset, step, close) and put
+    :meth:`observed_image` in their observations.
+
+    ``draw_images = False`` is for a caller that reads only the self-state and the success (the random floor):
+    the observation's image is then black and never drawn, which skips most of a step's cost (rendering the
+    scene on a CPU takes about ten times the physics of a Meta-World step).
     """
 
     _image: np.ndarray | None = None
+    draw_images: bool = True
 
     @abstractmethod
     def _ensure_env(self) -> None:
@@ -27,6 +33,13 @@ class OneImagePerState(gym.Env, ABC):
 
     def _state_changed(self) -> None:
         self._image = None
+
+    def observed_image(self) -> np.ndarray:
+        """The observation's camera image: :meth:`render`, or black with ``draw_images = False``."""
+        if self.draw_images:
+            return self.render()
+        size = self.observation_space["pixels"].shape
+        return np.zeros(size, np.uint8)
 
     def render(self) -> np.ndarray:
         """The camera image of the current state, upright, (H, W, 3) uint8."""

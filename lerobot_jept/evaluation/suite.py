@@ -178,6 +178,7 @@ def random_floor(build: dict, tasks: list[str], episodes: int, seed: int, length
     per_task = {}
     for task in tqdm(tasks, desc="random floor", unit="task", leave=False):
         env = make_env(protocol["simulator"], task, protocol, length)
+        env.draw_images = False  # the random policy never looks
         low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
         centres = np.asarray(bin_centres(protocol["action_bins"], low, high), dtype=np.float32)
         successes = []

@@ -36,6 +36,42 @@ def test_render_is_the_observation_drawn_once_per_state(make):
     env.close()
 
 
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: JeptMetaworldEnv("door-open-v3", image_size=32),
+        lambda: JeptRobosuiteEnv("panda-lift", image_size=32),
+    ],
+)
+def test_without_images_nothing_is_drawn_and_the_states_are_the_same(make):
+    """draw_images=False (the random floor): black images of the observation's shape, no draw, and the same
+    self-states and successes as with images."""
+    runs = []
+    for draw_images in (True, False):
+        env = make()
+        env.draw_images = draw_images
+        draws = []
+        draw = env._draw
+        env._draw = lambda draws=draws, draw=draw: draws.append(1) or draw()
+        obs, _ = env.reset(seed=3)
+        states, pixels = [obs["agent_pos"]], [obs["pixels"]]
+        for _ in range(3):
+            obs, _, success, *_ = env.step(np.full(env.action_space.shape, 0.8, np.float32))
+            states.append(obs["agent_pos"])
+            pixels.append(obs["pixels"])
+        runs.append((states, pixels, len(draws), success))
+        env.close()
+    (states, pixels, draws, success), (states_off, pixels_off, draws_off, success_off) = runs
+    assert draws == 4 and draws_off == 0
+    assert all(
+        p.shape == q.shape and p.dtype == q.dtype and not q.any()
+        for p, q in zip(pixels, pixels_off, strict=True)
+    )
+    assert any(p.any() for p in pixels)
+    np.testing.assert_array_equal(np.stack(states), np.stack(states_off))
+    assert success == success_off
+
+
 def test_envs_of_one_task_draw_mt1_goals_once(monkeypatch):
     import metaworld
 
