@@ -452,7 +452,10 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         a, b = cfg.splits
         assert (a.demo_tasks, a.video_tasks) == (b.video_tasks, b.demo_tasks) and len(a.video_tasks) == 4
         assert {t.split("-")[0] for t in a.video_tasks} == {"window", "door", "drawer", "faucet"}
-        assert cfg.test.method == "JEPT (plus)" and cfg.build.args == ["--expert_random_prob=0.15"]
+        assert cfg.test.method == "JEPT (plus)" and cfg.build.args == [
+            "--expert_random_prob=0.15",
+            "--video_episodes_per_task=90",
+        ]
         methods = {m.name: m for m in cfg.methods}
         twin = methods[cfg.test.baseline]
         assert (twin.config, twin.args, twin.data, methods[cfg.test.method].data) == (
@@ -473,9 +476,9 @@ def test_shipped_study_files_parse_and_plan(name, monkeypatch):
         # no play episodes (jept-screen: they lower the video-only tasks' inverse dynamics): labelled = _demo
         assert "pairs_a/labelled" not in commands and cfg.build.play_episodes_per_task == 0
         twin_train = commands["pairs_a/JEPT (plus), no videos/seed1000/train"]
-        assert "--dataset.repo_id=local/transfer_pairs_a_demo" in twin_train
+        assert "--dataset.repo_id=local/transfer90_pairs_a_demo" in twin_train
         idm_train = commands["pairs_a/BC+IDM (self-state)/seed1000/idm"]
-        assert "--dataset.repo_id=local/transfer_pairs_a_demo" in idm_train
+        assert "--dataset.repo_id=local/transfer90_pairs_a_demo" in idm_train
         recipe = commands["pairs_b_mirror/JEPT (plus)/seed2000/suite"]
         assert (
             "--n_episodes=20" in recipe
