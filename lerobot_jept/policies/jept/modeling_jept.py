@@ -342,14 +342,15 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
-        states = torch.stack([state for _, state in self._frames], 1)  # s_{t-k+1} .. s_t
+        recent = list(self._frames)[-(self.config.idm_history + 1) :]  # what the inverse dynamics reads
+        states = torch.stack([state for _, state in recent], 1)  # s_{t-h} .. s_t
         return self.bin_actions(self._control_logits(prompt, obs, h_past, states).argmax(-1))
 
     def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, states: Tensor) -> Tensor:
         """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and the
-        self-states s_{t-k+1..t} (B, k, S): the inverse dynamics of the predicted h_{t+1} or, with
-        ``idm_input="self_state"``, of the self-state change predicted from o_t's tokens. With ``prompt_guidance`` w, that prediction x (the change,
-        else the logits) becomes x + w (x - x_null), x_null the one under the learned null prompt
+        latest self-states, ending with s_t (B, >= idm_history + 1, S): the inverse dynamics of the predicted
+        h_{t+1} or, with ``idm_input="self_state"``, of the self-state change predicted from o_t's tokens. With
+        ``prompt_guidance`` w, that prediction x (the change, else the logits) becomes x + w (x - x_null), x_null the one under the learned null prompt
         (``prompt_dropout``) or, without one, with no prompt (the prompt warm-up's prediction)."""
         cfg, m = self.config, self.model
 
