@@ -23,7 +23,7 @@ import time
 
 REPO_ID = "local/jept_demo_window_open"
 OUTPUT = "outputs/demo"
-STEPS = int(os.environ.get("JEPT_DEMO_STEPS", 1000))
+STEPS = int(os.environ.get("JEPT_DEMO_STEPS", 600))
 EPISODES = int(os.environ.get("JEPT_DEMO_EPISODES", 10))
 IMAGE_SIZE = 64
 BUILD = [

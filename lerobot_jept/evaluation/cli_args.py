@@ -1,5 +1,6 @@
 """The checkpoint and dataset arguments the evaluation tools share (``--policy.*``, ``--dataset.*``)."""
 
+import dataclasses
 from dataclasses import dataclass
 
 
@@ -15,7 +16,7 @@ class PolicyArg:
         if self.device:
             policy_cfg.device = self.device
         if self.prompt_guidance is not None:
-            if not hasattr(policy_cfg, "prompt_guidance"):
+            if "prompt_guidance" not in {f.name for f in dataclasses.fields(policy_cfg) if f.init}:
                 raise ValueError(
                     f"--policy.prompt_guidance is a jept option; {self.path} is a {policy_cfg.type} checkpoint."
                 )

@@ -4,7 +4,6 @@ the frozen-or-trained spatial backbone and the prompt path, builders for the par
 the masked action loss, the prompt lookup, the per-frame token cache of control and LeRobot's Hub hooks.
 """
 
-import contextvars
 import dataclasses
 import json
 from collections import OrderedDict, deque
@@ -23,8 +22,8 @@ from lerobot_jept.policies.components.backbone import SpatialBackbone
 from lerobot_jept.policies.components.encoders import ObservationTokenizer, PromptVideoEncoder
 from lerobot_jept.policies.components.perceiver import PerceiverIO
 from lerobot_jept.policies.components.predictor import ActionHead, DTStarTransformer, SelfStateInverseDynamics
+from lerobot_jept.policies.configuration import PluginVersionError, VideoPolicyConfig
 from lerobot_jept.policies.discretization import bin_centres
-from lerobot_jept.policies.jept.configuration_jept import JEPTConfig, PluginVersionError
 from lerobot_jept.policies.prompts import PromptBank, load_prompt_video, resize_frames, unit_float
 
 PROMPT_VIDEO = "observation.prompt_video"
@@ -34,16 +33,14 @@ PROMPT_MASK = "observation.prompt_video_mask"
 PROMPT_ID = "observation.prompt_id"
 CACHE_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 IGNORE_INDEX = -100  # action labels that take no part in the action loss (unlabelled or padded frames)
-# True while a checkpoint is loading: its saved options are taken as they are.
-_LOADING: contextvars.ContextVar[bool] = contextvars.ContextVar("jept_loading_checkpoint", default=False)
 
 
-def transformer_kwargs(config: JEPTConfig, which: str) -> dict:
+def transformer_kwargs(config: VideoPolicyConfig, which: str) -> dict:
     """Self-attention stack sizes of the ``temporal`` encoder or the causal ``predictor`` (Table 5)."""
     return {name: getattr(config, f"{which}_{name}") for name in ("heads", "ff_dim", "layers", "dropout")}
 
 
-def perceiver_kwargs(config: JEPTConfig, which: str) -> dict:
+def perceiver_kwargs(config: VideoPolicyConfig, which: str) -> dict:
     """Perceiver-IO arguments: the shared structure plus the ``frame_`` or ``prompt_`` sizes of Table 5."""
     return dict(
         num_latents=getattr(config, f"{which}_perceiver_latents"),
@@ -74,7 +71,7 @@ def compile_units(model: nn.Module, mode: str) -> None:
             skip += (f"{name}.",)
 
 
-def make_backbone(config: JEPTConfig) -> SpatialBackbone:
+def make_backbone(config: VideoPolicyConfig) -> SpatialBackbone:
     return SpatialBackbone(
         config.vision_backbone,
         config.pretrained_backbone,
@@ -84,7 +81,7 @@ def make_backbone(config: JEPTConfig) -> SpatialBackbone:
     )
 
 
-def make_tokenizer(config: JEPTConfig, backbone_dim: int) -> ObservationTokenizer:
+def make_tokenizer(config: VideoPolicyConfig, backbone_dim: int) -> ObservationTokenizer:
     """The single-timestep encoder: per-frame Perceiver-IO + self-state token (N_obs = queries + 1)."""
     state_dim = config.input_features[OBS_STATE].shape[0]
     return ObservationTokenizer(
@@ -96,7 +93,7 @@ def make_tokenizer(config: JEPTConfig, backbone_dim: int) -> ObservationTokenize
     )
 
 
-def make_prompt_encoder(config: JEPTConfig, backbone_dim: int) -> PromptVideoEncoder:
+def make_prompt_encoder(config: VideoPolicyConfig, backbone_dim: int) -> PromptVideoEncoder:
     return PromptVideoEncoder(
         backbone_dim,
         frame_perceiver=perceiver_kwargs(config, "frame"),
@@ -109,7 +106,7 @@ def make_prompt_encoder(config: JEPTConfig, backbone_dim: int) -> PromptVideoEnc
 
 
 def make_action_head(
-    config: JEPTConfig, width: int, outputs: int | None = None, classes: int | None = None
+    config: VideoPolicyConfig, width: int, outputs: int | None = None, classes: int | None = None
 ) -> ActionHead:
     """Gamma_act at the config's sizes: ``outputs`` queries (default: the action dimensions) of ``classes``
     logits each (default: the action bins)."""
@@ -124,7 +121,7 @@ def make_action_head(
     )
 
 
-def make_dt_star_transformer(config: JEPTConfig) -> DTStarTransformer:
+def make_dt_star_transformer(config: VideoPolicyConfig) -> DTStarTransformer:
     """DT*'s causal Transformer over ``[E_prt | o_t-k+1, ..., o_t]`` at the ``predictor_*`` sizes."""
     return DTStarTransformer(
         config.perceiver_dim,
@@ -135,7 +132,7 @@ def make_dt_star_transformer(config: JEPTConfig) -> DTStarTransformer:
     )
 
 
-def make_state_inverse_dynamics(config: JEPTConfig) -> SelfStateInverseDynamics:
+def make_state_inverse_dynamics(config: VideoPolicyConfig) -> SelfStateInverseDynamics:
     """The inverse dynamics on the self-state and its change (``idm_input="self_state"``)."""
     return SelfStateInverseDynamics(
         config.predictor_dim,
@@ -144,7 +141,7 @@ def make_state_inverse_dynamics(config: JEPTConfig) -> SelfStateInverseDynamics:
         config.num_action_bins,
         config.obs_head_hidden_dim,
         config.obs_head_layers,
-        config.idm_history,
+        config.idm_history or 0,  # jept_idm reads the one change (its retired field is None)
     )
 
 
@@ -166,7 +163,7 @@ class VisualPolicyNet(nn.Module):
     """Base of the networks. Subclasses set ``backbone`` (a :class:`SpatialBackbone`) and, when they take a
     prompt, ``prompt_encoder``; :meth:`frame_tokens` is how they turn frames into observation tokens."""
 
-    config: JEPTConfig
+    config: VideoPolicyConfig
     backbone: SpatialBackbone
 
     def backbone_tokens(self, images: Tensor) -> Tensor:
@@ -297,17 +294,13 @@ class DiscreteActionPolicy(PreTrainedPolicy):
     ``jept_action_bins`` gives the labels, ``select_action`` returns bin centres), a step counter that LeRobot
     advances through ``update()``, the prompt from the batch, and the checkpoint and Hub behaviour."""
 
-    config_class = JEPTConfig  # every subclass sets its own (LeRobot requires both on every class)
+    config_class = VideoPolicyConfig  # every subclass sets its own (LeRobot requires both on every class)
     name = "discrete_action_policy"
     model_class: type[VisualPolicyNet]  # the network, built from the config
 
-    def __init__(self, config: JEPTConfig, **kwargs):
+    def __init__(self, config: VideoPolicyConfig, **kwargs):
         super().__init__(config)
         config.validate_features()
-        if (
-            not _LOADING.get()
-        ):  # a new policy: an option its type ignores is an error (a checkpoint loads as saved)
-            config.refuse_ignored_options()
         self.config = config
         self.model = self.model_class(config)
         if config.compile_model:
@@ -325,7 +318,9 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         parser's wrapper around it. Config options can be given by name (``prompt_video="clip.mp4"``), as
         ``--policy.<option>`` gives them to LeRobot's commands."""
         options = {
-            name: kwargs.pop(name) for name in list(kwargs) if name in cls.config_class.__dataclass_fields__
+            name: kwargs.pop(name)
+            for name in list(kwargs)
+            if name in {f.name for f in dataclasses.fields(cls.config_class) if f.init}
         }
         try:
             if options:
@@ -335,11 +330,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
                     pretrained_name_or_path
                 )
                 kwargs["config"] = dataclasses.replace(config, **options)
-            loading = _LOADING.set(True)
-            try:
-                return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
-            finally:
-                _LOADING.reset(loading)
+            return super().from_pretrained(pretrained_name_or_path, *args, **kwargs)
         except Exception as err:
             cause = err
             while cause is not None and not isinstance(cause, PluginVersionError):
@@ -646,7 +637,7 @@ def frame_mean(values: Tensor, frame_ok: Tensor) -> Tensor:
     return (values * frame_ok).sum(-1) / frame_ok.sum(-1).clamp_min(1)
 
 
-def card_section(config: JEPTConfig, dataset_repo_id: str, dataset_meta=None) -> str:
+def card_section(config: VideoPolicyConfig, dataset_repo_id: str, dataset_meta=None) -> str:
     """Model card text: training data, prompt bank, task split and how to evaluate the checkpoint."""
     split, protocol = {}, {}
     if dataset_meta is not None and (Path(dataset_meta.root) / "meta/jept_build.json").is_file():

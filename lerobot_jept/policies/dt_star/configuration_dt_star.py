@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_jept.policies.jept.configuration_jept import BehaviourCloningConfig
+from lerobot_jept.policies.configuration import BehaviourCloningConfig
 
 
 @PreTrainedConfig.register_subclass("jept_dt_star")
@@ -24,10 +24,10 @@ class DTStarConfig(BehaviourCloningConfig):
       causal Transformer, here over prompt and observation tokens only), ``action_head_*``, the bins, the
       optimizer (``optimizer_lr_encoder`` for the tokenizer and a trained backbone, ``optimizer_lr_prompt``,
       ``optimizer_lr_predictor`` for the Transformer and the action head) and the prompt bank;
-    - unused, as they belong to the joint embedding prediction DT* removes: ``joint_embedding_dim``,
-      ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``action_loss_weight`` (the loss is L_act alone),
-      ``phase_schedule``/``phase_steps`` (one phase), ``prompt_warmup_steps`` (the prompt is always in) and the
-      prompt terms ``prompt_align_*``/``prompt_swap_*`` (they need the joint embedding targets).
+    - not options of DT*, as they belong to the joint embedding prediction it removes: JEPT's
+      ``joint_embedding_dim``, ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``action_loss_weight`` (the loss is
+      L_act alone), ``phase_*`` (one phase), ``prompt_warmup_steps`` (the prompt is always in), the prompt
+      terms and the recipe.
 
     Samples hold the k context frames only (no next frame), so ``drop_n_last_frames`` is 0.
     """

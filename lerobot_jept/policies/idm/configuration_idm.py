@@ -5,34 +5,37 @@ every unlabelled frame of a ``_mix`` repo an action; BC is ``jept_dt_star`` on t
 """
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_jept.policies.jept.configuration_jept import JEPT_ONLY_OPTIONS, JEPTConfig
+from lerobot_jept.policies.configuration import RetiredJEPTOptions, VideoPolicyConfig, check_idm_input
 
 
 @PreTrainedConfig.register_subclass("jept_idm")
 @dataclass
-class IDMConfig(JEPTConfig):
+class IDMConfig(VideoPolicyConfig, RetiredJEPTOptions):
     """Inverse dynamics model (``--policy.type=jept_idm``): JEPT's backbone, single-frame Perceiver tokenizer and
     action head (Table 5 defaults; the small configuration is ``examples/configs/train_idm_small_cpu.json``).
     The tokens of o_t and o_{t+1} (N_obs each) go through a bi-directional Transformer of the ``predictor_*``
     sizes, and the action head reads a_t from all of them. Loss: cross-entropy over the action bins on labelled
-    frames. No prompt: the IDM sees the transition, not the task. ``--policy.idm_input=self_state``: the IDM is
-    an MLP from the self-state and its change (s_t, s_t+1 - s_t) alone, no camera (VPT / BCO style); the change
-    carries the action in every scene, so it labels the video-only tasks' frames far better than pixel tokens. Unused (JEPT-only): ``n_obs_steps``,
-    ``joint_embedding_dim``, ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``action_loss_weight``,
-    ``phase_*``, ``prompt_*`` and ``max_prompt_length``; ``optimizer_lr_encoder`` trains the tokenizer (and a
-    trained backbone), ``optimizer_lr_predictor`` the Transformer and the action head.
+    frames. No prompt: the IDM sees the transition, not the task.
+
+    ``idm_input``: ``"embedding"`` (default) reads the frames' tokens as above; ``"self_state"`` makes the IDM an
+    MLP (``obs_head_hidden_dim`` wide, ``obs_head_layers`` deep) from the self-state and its change
+    (s_t, s_t+1 - s_t) alone, no camera (VPT / BCO style); the change carries the action in every scene, so it
+    labels the video-only tasks' frames far better than pixel tokens. ``optimizer_lr_encoder`` trains the
+    tokenizer (and a trained backbone), ``optimizer_lr_predictor`` the Transformer and the action head. The
+    prompt options and ``n_obs_steps`` take no part; JEPT's own options (``temporal_*``, ``ema_decay``,
+    ``phase_*``, the prompt terms, the recipe) are not options of this type.
     """
 
-    ignored_options: ClassVar[tuple[str, ...]] = tuple(
-        o for o in JEPT_ONLY_OPTIONS if o not in ("obs_head_hidden_dim", "obs_head_layers", "idm_input")
-    )
-    recipe: str = "paper"  # JEPT's options at the paper's values: none of them applies to the IDM
-    prompt_align_weight: float = 0.0
-    prompt_swap_weight: float = 0.0
+    idm_input: str = "embedding"
+    obs_head_hidden_dim: int = 256
+    obs_head_layers: int = 3
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_idm_input(self.idm_input)
 
     @property
     def observation_delta_indices(self) -> list[int]:

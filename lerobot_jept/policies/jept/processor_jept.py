@@ -23,7 +23,7 @@ from lerobot.processor.factory import make_default_policy_processor_steps, make_
 from torch import Tensor
 
 from lerobot_jept.envs.spec import ACTION_LABELLED
-from lerobot_jept.policies.jept.configuration_jept import JEPTConfig
+from lerobot_jept.policies.configuration import VideoPolicyConfig
 from lerobot_jept.policies.jept.modeling_jept import IGNORE_INDEX, PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
 from lerobot_jept.policies.prompts import PromptBank, resize_frames, subsample_indices, unit_float
 
@@ -179,7 +179,7 @@ class JeptPromptVideoStep(ProcessorStep):
 
 
 def make_jept_pre_post_processors(
-    config: JEPTConfig, dataset_stats: dict[str, dict[str, Tensor]] | None = None, **kwargs
+    config: VideoPolicyConfig, dataset_stats: dict[str, dict[str, Tensor]] | None = None, **kwargs
 ) -> tuple[
     PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
     PolicyProcessorPipeline[PolicyAction, PolicyAction],

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_jept.policies.jept.configuration_jept import BehaviourCloningConfig
+from lerobot_jept.policies.configuration import BehaviourCloningConfig
 
 
 @PreTrainedConfig.register_subclass("jept_lapo")
@@ -33,10 +33,9 @@ class LAPOConfig(BehaviourCloningConfig):
     Shared with JEPT: the backbone, ``perceiver_*``, ``frame_perceiver_*``, ``prompt_perceiver_*``,
     ``predictor_*``, ``action_head_*`` (the latent policy's head), the bins, the optimizer groups
     (``optimizer_lr_encoder``, ``optimizer_lr_prompt``, ``optimizer_lr_predictor``, the last for the
-    Transformer, its head, the latent model and the decoder) and the prompt bank. Unused (JEPT-only):
-    ``joint_embedding_dim``, ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``action_loss_weight``, ``phase_*``,
-    ``prompt_warmup_steps``, ``prompt_align_*``, ``prompt_swap_*``. Samples hold the k context frames and the
-    next one.
+    Transformer, its head, the latent model and the decoder) and the prompt bank. JEPT's own options
+    (``joint_embedding_dim``, ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``phase_*``, the prompt terms, the
+    recipe) are not options of this type. Samples hold the k context frames and the next one.
     """
 
     latent_dims: int = 4

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_jept.policies.jept.configuration_jept import BehaviourCloningConfig
+from lerobot_jept.policies.configuration import BehaviourCloningConfig
 
 
 @PreTrainedConfig.register_subclass("jept_vid2robot")
@@ -28,9 +28,9 @@ class Vid2RobotConfig(BehaviourCloningConfig):
       (Vid2Robot's video alignment loss), ``aux_temperature`` for both;
     - the text-video contrastive loss is removed (no text here), as in the paper.
 
-    Both auxiliary losses use every frame, labelled or not. Unused (JEPT-only): ``joint_embedding_dim``,
-    ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``action_loss_weight``, ``phase_*``,
-    ``prompt_warmup_steps``, ``prompt_align_*``, ``prompt_swap_*``. Samples hold the k context frames only.
+    Both auxiliary losses use every frame, labelled or not. JEPT's own options (``joint_embedding_dim``,
+    ``temporal_*``, ``obs_head_*``, ``ema_decay``, ``phase_*``, the prompt terms, the recipe) are not options of
+    this type. Samples hold the k context frames only.
     """
 
     video_contrastive_weight: float = 1.0

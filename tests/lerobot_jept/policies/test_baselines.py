@@ -3,6 +3,7 @@ real tiny Meta-World build: what each objective sees, save/reload, and the LeRob
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -13,7 +14,6 @@ from lerobot_jept import DTStarConfig, DTStarPolicy, IDMConfig, IDMPolicy, LAPOC
 from lerobot_jept.evaluation.compare import CompareConfig, CompareError, compare
 from lerobot_jept.evaluation.paper import PAPER_SPLIT
 from lerobot_jept.policies.components.token_groups import DT_STAR_RULES, TokenGroup, attention_mask
-from lerobot_jept.policies.jept.configuration_jept import SMALL_CPU_OVERRIDES
 from lerobot_jept.policies.jept.modeling_jept import IGNORE_INDEX
 from tests.conftest import load
 from tests.lerobot_jept.policies.test_policy import mixed_batch
@@ -27,9 +27,14 @@ def build(tiny_build, config_cls, **overrides):
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     torch.manual_seed(0)
-    fields = {**SMALL_CPU_OVERRIDES, "device": "cpu", "image_size": 64, "max_prompt_length": 4}
-    fields.update(prompt_repo_id=PROMPTS, **NO_DROPOUT, **overrides)
-    cfg = config_cls(**fields)
+    fields = {
+        "device": "cpu",
+        "image_size": 64,
+        "max_prompt_length": 4,
+        "prompt_repo_id": PROMPTS,
+        **NO_DROPOUT,
+    }
+    cfg = config_cls.small(**{**fields, **overrides})
     meta = LeRobotDatasetMetadata(MIX)
     policy = make_policy(cfg, ds_meta=meta)
     pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
@@ -474,19 +479,35 @@ def test_self_state_idm_reads_the_state_change_alone_and_fits_it(tiny_build, tmp
         (DTStarConfig, "ema_decay", 0.5),
         (Vid2RobotConfig, "prompt_warmup_steps", 7),
         (LAPOConfig, "temporal_layers", 5),
-    ]
-    + [(IDMConfig, "phase_steps", 3)],
+        (IDMConfig, "phase_steps", 3),
+    ],
 )
-def test_an_option_the_type_ignores_is_an_error_and_a_saved_checkpoint_loads_as_it_is(
+def test_jept_options_are_no_options_of_a_baseline_and_its_older_checkpoints_still_load(
     tiny_build, tmp_path, config_cls, option, value
 ):
+    import draccus
+    from lerobot.configs.policies import PreTrainedConfig
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
+    with pytest.raises(TypeError, match=option):
+        config_cls(**{option: value})
+    with pytest.raises(SystemExit):  # LeRobot's parser: an unknown argument
+        draccus.parse(config_cls, args=[f"--{option}={value}"])
     meta = LeRobotDatasetMetadata(MIX)
-    fields = {**SMALL_CPU_OVERRIDES, "device": "cpu", "image_size": 64, "prompt_repo_id": PROMPTS}
-    with pytest.raises(ValueError, match=f"does not use --policy.{option}={value}"):
-        make_policy(config_cls(**{**fields, option: value}), ds_meta=meta)
-    policy = make_policy(config_cls(**fields), ds_meta=meta)  # its defaults and the small configuration's
-    setattr(policy.config, option, value)  # as a checkpoint saved before the check would hold it
-    policy.save_pretrained(tmp_path)
-    assert getattr(type(policy).from_pretrained(tmp_path).config, option) == value
+    policy = make_policy(config_cls.small(device="cpu", image_size=64, prompt_repo_id=PROMPTS), ds_meta=meta)
+    policy.save_pretrained(tmp_path / "new")
+    saved = json.loads((tmp_path / "new/config.json").read_text())
+    assert option not in saved and "recipe" not in saved
+    # A checkpoint saved when the baselines carried JEPT's options: its config holds them.
+    old = tmp_path / "old"
+    shutil.copytree(tmp_path / "new", old)
+    (old / "config.json").write_text(json.dumps({**saved, option: value, "recipe": "paper"}))
+    loaded = type(policy).from_pretrained(old)
+    assert loaded.config == policy.config  # the old keys are read and take no part
+    for name, tensor in policy.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], tensor), name
+    # ... and so does a training run's config on resume (LeRobot decodes it as a choice of policy type).
+    resumed = draccus.decode(PreTrainedConfig, {**saved, option: value})
+    assert type(resumed) is config_cls
+    loaded.save_pretrained(tmp_path / "again")
+    assert option not in json.loads((tmp_path / "again/config.json").read_text())

@@ -1,6 +1,7 @@
 """The `jept` policy on a real tiny Meta-World build: losses, masking, EMA, phases, save/load, control cache."""
 
 import copy
+import dataclasses
 import json
 import sys
 
@@ -35,8 +36,9 @@ def tiny_config(config_cls=JEPTConfig, **overrides) -> JEPTConfig:
         phase_schedule="joint",
         prompt_warmup_steps=0,
     )
-    # A baseline refuses the JEPT options it ignores.
-    fields = {k: v for k, v in fields.items() if k not in config_cls.ignored_options}
+    # JEPT's options are no options of a baseline.
+    own = {f.name for f in dataclasses.fields(config_cls) if f.init}
+    fields = {k: v for k, v in fields.items() if k in own}
     return config_cls.small(**{**fields, **overrides})
 
 
