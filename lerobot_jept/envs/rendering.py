@@ -31,7 +31,7 @@ def setup_offscreen_gl(default: str = "egl") -> str:
     backend = os.environ.setdefault("MUJOCO_GL", default).lower()
     if backend not in GL_BACKENDS:
         raise RendererUnavailableError(
-            f"MUJOCO_GL={backend!r} is not an offscreen backend MuJoCo supports here; "
+            f"MUJOCO_GL={backend!r} is not an offscreen backend MuJoCo supports on this system; "
             f"set MUJOCO_GL to one of {sorted(GL_BACKENDS)} (egl is the fastest headless choice)."
         )
     if backend in ("egl", "osmesa"):

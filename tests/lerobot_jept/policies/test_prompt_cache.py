@@ -176,7 +176,7 @@ def test_bank_prompts_travel_as_uint8_and_give_the_float_prompts_loss(tiny_build
         torch.testing.assert_close(grad, losses[1][1][name], rtol=0, atol=0, msg=name)
 
 
-@pytest.mark.slow  # compiling takes two to four minutes here
+@pytest.mark.slow  # compiling takes two to four minutes on a 2-core CPU
 def test_compiled_blocks_give_the_eager_loss_gradients_and_actions(tiny_build):
     # the paper's recipe: the action head on the predicted h_t+1, the graphs this check was sized for
     eager, pre, post = build_policy(tiny_build, freeze_backbone=True, recipe="paper")
