@@ -5,6 +5,8 @@
   (vit_base_patch16_224 at 224 px, k = 8) with random weights, batch 1, same context. Goal >= 5.
 - ``select_action_vs_backbone``: the cached ``select_action`` step above / one backbone pass on the new frame
   alone (same model, same run): what a control step costs beyond the one frame it must encode. Goal <= 1.1.
+  ``select_action_guided_vs_backbone``: the same with the ``plus`` recipe's guidance on (``prompt_dropout``
+  0.1, ``prompt_guidance`` 1: the predictor runs under the prompt and under the null prompt). No goal.
 - ``train_step_vs_act``: one training step (forward, backward, AdamW) of the small jept configuration / one of
   LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
   size. Goal <= 2.
@@ -65,19 +67,26 @@ def median_time(fn, repeats: int, warmup: int = 2) -> float:
     return statistics.median(step_times(fn, repeats, warmup))
 
 
-def select_action_speedup(repeats: int) -> tuple[float, float, float]:
+def select_action_speedup(repeats: int) -> tuple[float, float, float, float]:
+    """-> (uncached / cached step time, cached step s, backbone pass s, cached step s with guidance)."""
     features = {
         "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 224, 224)),
         "observation.state": PolicyFeature(FeatureType.STATE, (18,)),
     }
     times = {}
     torch.manual_seed(0)
-    for cached in (False, True):
+    # uncached, cached, and cached with the plus recipe's guidance (a second prediction under the null prompt)
+    for run, (cached, dropout) in {
+        "uncached": (False, 0.0),
+        "cached": (True, 0.0),
+        "guided": (True, 0.1),
+    }.items():
         cfg = JEPTConfig(
             device="cpu",
             pretrained_backbone=False,
             cache_frame_tokens=cached,
             prompt_warmup_steps=0,
+            prompt_dropout=dropout,
             input_features=features,
             output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
         )
@@ -90,11 +99,11 @@ def select_action_speedup(repeats: int) -> tuple[float, float, float]:
         policy.reset()
         for _ in range(cfg.n_obs_steps):  # a full context, prompt encoded: the steady state of an episode
             policy.select_action(obs)
-        times[cached] = median_time(lambda p=policy, o=obs: p.select_action(o), repeats, warmup=1)
+        times[run] = median_time(lambda p=policy, o=obs: p.select_action(o), repeats, warmup=1)
     image = obs["observation.image"][:, None]
     with torch.no_grad():
         backbone_s = median_time(lambda p=policy: p.model.backbone_tokens(image), repeats, warmup=1)
-    return times[False] / times[True], times[True], backbone_s
+    return times["uncached"] / times["cached"], times["cached"], backbone_s, times["guided"]
 
 
 def tiny_build() -> str:
@@ -154,11 +163,12 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
 
-    speedup, cached_s, backbone_s = select_action_speedup(args.repeats)
+    speedup, cached_s, backbone_s, guided_s = select_action_speedup(args.repeats)
     print(f"select_action_cached_s: {cached_s:.3f}")
     print(f"select_action_cached_speedup: {speedup:.2f}")
     print(f"backbone_one_frame_s: {backbone_s:.3f}")
     print(f"select_action_vs_backbone: {cached_s / backbone_s:.2f}")
+    print(f"select_action_guided_vs_backbone: {guided_s / backbone_s:.2f}")
 
     from lerobot.policies.act.configuration_act import ACTConfig
 

@@ -52,14 +52,6 @@ class SelfAttentionStack(nn.Module):
     ) -> Tensor:
         return self.norm(self.layers(x, mask=mask, src_key_padding_mask=key_padding_mask))
 
-    def forward_with_states(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, list[Tensor]]:
-        """As ``forward``, also returning every layer's input, for :meth:`extend`."""
-        states = []
-        for layer in self.layers.layers:
-            states.append(x)
-            x = layer(x, src_mask=mask)
-        return self.norm(x), states
-
     def forward_selected(self, x: Tensor, selected: Tensor, key_padding_mask: Tensor | None = None) -> Tensor:
         """Outputs (B, M, D) of the tokens ``x[b, selected[b]]`` only (``selected``: (B, M) indices): every layer
         but the last runs on all tokens, the last only on the selected queries. Same values as ``forward``."""
@@ -75,16 +67,62 @@ class SelfAttentionStack(nn.Module):
         picked = picked + last.dropout1(attn)
         return self.norm(picked + last._ff_block(last.norm2(picked)))
 
-    def extend(self, states: list[Tensor], x: Tensor) -> Tensor:
-        """Outputs of new tokens ``x`` (B, M, D) appended after the tokens whose layer inputs are ``states``;
+    # Control (inference, no dropout): each layer's keys and values are kept, so tokens that come later attend to
+    # earlier ones without projecting them again. ``KV``: per layer, keys and values (B, heads, N, head_dim).
+
+    def prefix_kv(self, x: Tensor) -> "KV":
+        """The keys and values of a prefix of tokens (B, P, D) that attends only to itself (a first group under a
+        block-causal mask): the same whatever follows it, so computed once for all that does."""
+        return self.forward_after([], x, torch.zeros(x.shape[1], x.shape[1], dtype=torch.bool))[1]
+
+    def forward_after(
+        self, prefix: "KV", x: Tensor, mask: Tensor, last: int | None = None
+    ) -> tuple[Tensor, "KV"]:
+        """``forward`` of the tokens ``x`` (B, M, D) after a prefix whose keys and values are ``prefix`` (an
+        empty list: none). ``mask`` (M, P + M), True = blocked, is the rows of ``x`` in the whole sequence's
+        mask. Returns the outputs (only the ``last`` tokens' when given: the last layer then runs those queries
+        alone) and the keys and values of prefix and ``x`` together, for :meth:`extend`."""
+        layers, kv = self.layers.layers, []
+        for i, layer in enumerate(layers):
+            q, k, v = _project(layer, layer.norm1(x))
+            if prefix:
+                k, v = torch.cat([prefix[i][0], k], dim=2), torch.cat([prefix[i][1], v], dim=2)
+            kv.append((k, v))
+            rows = mask
+            if last is not None and i == len(layers) - 1:
+                x, q, rows = x[:, -last:], q[:, :, -last:], mask[-last:]
+            x = x + _attend(layer, q, k, v, ~rows.to(x.device))
+            x = x + layer._ff_block(layer.norm2(x))
+        return self.norm(x), kv
+
+    def extend(self, kv: "KV", x: Tensor) -> Tensor:
+        """Outputs of new tokens ``x`` (B, M, D) appended after the tokens whose keys and values are ``kv``;
         they attend to all of those and to each other (a last group under a block-causal mask), and nothing
         already computed changes: the old tokens never attend to later ones."""
-        for layer, prev in zip(self.layers.layers, states, strict=True):
-            q = layer.norm1(x)
-            kv = torch.cat([layer.norm1(prev), q], dim=1)
-            x = x + layer.dropout1(layer.self_attn(q, kv, kv, need_weights=False)[0])
+        for layer, (k_old, v_old) in zip(self.layers.layers, kv, strict=True):
+            q, k, v = _project(layer, layer.norm1(x))
+            x = x + _attend(layer, q, torch.cat([k_old, k], dim=2), torch.cat([v_old, v], dim=2))
             x = x + layer._ff_block(layer.norm2(x))
         return self.norm(x)
+
+
+KV = list[tuple[Tensor, Tensor]]
+
+
+def _project(layer: nn.TransformerEncoderLayer, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A layer's query, key and value projections of normalised tokens (B, N, D), each (B, heads, N, D / heads)."""
+    attn = layer.self_attn
+    q, k, v = nn.functional.linear(x, attn.in_proj_weight, attn.in_proj_bias).chunk(3, dim=-1)
+    return tuple(t.unflatten(-1, (attn.num_heads, -1)).transpose(1, 2) for t in (q, k, v))
+
+
+def _attend(
+    layer: nn.TransformerEncoderLayer, q: Tensor, k: Tensor, v: Tensor, allowed: Tensor | None = None
+):
+    """The layer's multi-head attention on projected queries, keys and values -> (B, Nq, D); ``allowed`` (Nq,
+    Nk) bool, True where a query may attend (all, when None)."""
+    out = nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=allowed)
+    return layer.self_attn.out_proj(out.transpose(1, 2).flatten(2))
 
 
 def sinusoidal_positions(length: int, dim: int) -> Tensor:

@@ -6,7 +6,12 @@ from einops import rearrange, repeat
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from lerobot_jept.policies.components.attention import CrossAttentionBlock, SelfAttentionStack, StepPositions
+from lerobot_jept.policies.components.attention import (
+    KV,
+    CrossAttentionBlock,
+    SelfAttentionStack,
+    StepPositions,
+)
 from lerobot_jept.policies.components.token_groups import (
     DT_STAR_RULES,
     TokenGroup,
@@ -100,15 +105,36 @@ class CausalPredictor(PromptedSequence):
         z_emb = torch.stack([z[:, s] for s in group_slices(groups, "emb")], dim=1)
         return z_obs, z_emb
 
-    def forward_last_step(self, prompt: Tensor | None, obs: Tensor, emb_past: Tensor, predict_emb) -> Tensor:
+    def prompt_kv(self, prompt: Tensor | None) -> KV:
+        """Control: every layer's keys and values of the prompt tokens. The prompt attends only to itself, so
+        these are the same at every step of an episode: computed once, then passed to :meth:`last_obs_hidden`
+        and :meth:`forward_last_step`. An empty list without a prompt (the warm-up's prediction)."""
+        if prompt is None:
+            return []
+        return self.transformer.prefix_kv(self.prompt_in(prompt) + self.type_embed[0])
+
+    def _after_prompt(self, prompt_kv: KV, obs: Tensor, emb: Tensor, last: int) -> tuple[Tensor, KV]:
+        """The sequence after the prompt: its ``last`` tokens' outputs, and the keys and values of everything."""
+        seq, groups = self._sequence(None, obs, emb)
+        prompt = prompt_kv[0][0].shape[2] if prompt_kv else 0
+        if prompt:
+            groups = [TokenGroup("prompt", prompt), *groups]
+        return self.transformer.forward_after(prompt_kv, seq, attention_mask(groups)[prompt:], last)
+
+    def last_obs_hidden(self, prompt_kv: KV, obs: Tensor, emb_past: Tensor) -> Tensor:
+        """Control: hidden states (B, N, width) of the o_t tokens, those of ``forward(prompt, obs, emb_past)``,
+        after the prompt's cached keys and values (the last layer runs the o_t queries alone)."""
+        return self._after_prompt(prompt_kv, obs, emb_past, obs.shape[2])[0]
+
+    def forward_last_step(self, prompt_kv: KV, obs: Tensor, emb_past: Tensor, predict_emb) -> Tensor:
         """Control: hidden states (B, N, width) of the h_{t+1} tokens, h_{t+1} = ``predict_emb`` of the o_t
-        hidden states. One pass over the sequence up to o_t, then the h_{t+1} group alone on its cached layer
-        inputs (the earlier tokens never attend to it), instead of two full passes."""
+        hidden states. One pass over the sequence up to o_t after the prompt's cached keys and values, then the
+        h_{t+1} group alone on the keys and values of everything before it (the earlier tokens never attend to
+        it), instead of two full passes."""
         k, n = obs.shape[1], obs.shape[2]
-        seq, groups = self._sequence(prompt, obs, emb_past)
-        z, states = self.transformer.forward_with_states(seq, mask=attention_mask(groups).to(seq.device))
-        h_next = self.emb_in(predict_emb(z[:, -n:])) + self.positions(k)[-1] + self.type_embed[2]
-        return self.transformer.extend(states, h_next)
+        z_last, kv = self._after_prompt(prompt_kv, obs, emb_past, n)
+        h_next = self.emb_in(predict_emb(z_last)) + self.positions(k)[-1] + self.type_embed[2]
+        return self.transformer.extend(kv, h_next)
 
 
 class ObservationHead(nn.Module):

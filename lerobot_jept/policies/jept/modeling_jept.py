@@ -335,6 +335,11 @@ class JEPTPolicy(DiscreteActionPolicy):
 
     # Control ----------------------------------------------------------------------------------------------
 
+    def reset(self) -> None:
+        super().reset()
+        # The predictor's keys and values under the prompt and under the null prompt, with the prompt they are of.
+        self._prompt_kv: dict[str, tuple] = {}
+
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """(B, action_dim) bin-centre actions for the current observation."""
@@ -354,19 +359,26 @@ class JEPTPolicy(DiscreteActionPolicy):
         (``prompt_dropout``) or, without one, with no prompt (the prompt warm-up's prediction)."""
         cfg, m = self.config, self.model
 
-        def predicted(p: Tensor | None) -> Tensor:
+        def predicted(p: Tensor | None, role: str) -> Tensor:
+            if cfg.cache_frame_tokens:  # the prompt's keys and values, once per prompt (an episode's)
+                cached = self._prompt_kv.get(role)
+                if cached is None or cached[0] is not prompt:
+                    cached = self._prompt_kv[role] = (prompt, m.predictor.prompt_kv(p))
+                kv = cached[1]
+                if m.state_dynamics is not None:
+                    return m.state_dynamics.predict_change(m.predictor.last_obs_hidden(kv, obs, h_past))
+                hidden = m.predictor.forward_last_step(kv, obs, h_past, m.obs_head)
+                return m.action_head(hidden[:, None])[:, 0]
+            # the reference: full passes; for Gamma_act, h_{t+1} predicted by the first and fed into the second
             if m.state_dynamics is not None:
                 return m.state_dynamics.predict_change(m.predictor(p, obs, h_past)[0][:, -1])
-            if cfg.cache_frame_tokens:
-                return m.action_head(m.predictor.forward_last_step(p, obs, h_past, m.obs_head)[:, None])[:, 0]
-            # the reference: two full passes, h_{t+1} predicted by the first and fed back into the second
             placeholder = torch.zeros_like(obs[:, :1, :, : cfg.joint_embedding_dim])
             pred_h = m.predict(p, obs, torch.cat([h_past, placeholder], 1))[0]
             return m.predict(p, obs, torch.cat([h_past, pred_h[:, -1:]], 1))[1][:, -1]
 
-        x = predicted(prompt)
+        x = predicted(prompt, "prompt")
         if cfg.prompt_guidance and prompt is not None:
             null = None if m.null_prompt is None else m.null_prompt(prompt)
-            x = x + cfg.prompt_guidance * (x - predicted(null))
+            x = x + cfg.prompt_guidance * (x - predicted(null, "null"))
         sd = m.state_dynamics
         return x if sd is None else sd(states[:, -1], x, sd.past_changes(states)[:, -1])

@@ -303,12 +303,25 @@ def test_save_and_reload_gives_identical_outputs_and_processors(policy_and_batch
     torch.testing.assert_close(policy.select_action(obs), reloaded.select_action(obs))
 
 
-def test_cached_and_uncached_control_give_the_same_actions(tiny_build):
-    policy, pre, post = build_policy(tiny_build)
+@pytest.mark.parametrize(
+    "overrides",
+    [{}, {"recipe": "paper"}, {"prompt_dropout": 0.2, "prompt_guidance": 1.0}],
+    ids=["plus", "paper", "guided"],
+)
+def test_cached_and_uncached_control_give_the_same_actions(tiny_build, overrides):
+    """The cached control (frame tokens, the prompt's layer inputs, the last layer on o_t alone) gives the logits
+    of full recomputation, for either inverse dynamics and with guidance's second prediction."""
+    policy, pre, post = build_policy(tiny_build, **overrides)
     uncached = copy.deepcopy(policy)
     uncached.config = copy.deepcopy(policy.config)
     uncached.config.cache_frame_tokens = False
     policy.eval(), uncached.eval()
+    logits = {}
+    for name, p in (("cached", policy), ("uncached", uncached)):
+        control = p._control_logits
+        p._control_logits = lambda *a, name=name, control=control: (
+            logits.setdefault(name, []).append(control(*a)) or logits[name][-1]
+        )
     ds = load(MIX)
     episode = ds.meta.episodes[0]
     frames = [ds[episode["dataset_from_index"] + i] for i in range(7)]  # wraps the k = 4 context
@@ -325,6 +338,7 @@ def test_cached_and_uncached_control_give_the_same_actions(tiny_build):
         a, b = policy.select_action(obs), uncached.select_action(obs)
         assert a.shape == (1, 4)
         torch.testing.assert_close(a, b)
+        torch.testing.assert_close(logits["cached"][-1], logits["uncached"][-1], atol=1e-5, rtol=1e-4)
         centres = torch.linspace(-1, 1, 7)
         assert (post(a)[..., None] - centres).abs().min(-1).values.max() < 1e-6  # executed: bin centres
 
