@@ -435,9 +435,6 @@ SMALL_CPU_OVERRIDES = dict(
 )
 
 
-# The options of JEPT's joint embedding prediction, its prompt terms, schedule and inverse dynamics.
-
-
 # JEPT's options (the joint embedding prediction, its objective, schedule and recipe): no baseline has them.
 JEPT_OPTIONS = (
     "joint_embedding_dim",
@@ -479,8 +476,8 @@ RetiredJEPTOptions = dataclasses.make_dataclass(
 @dataclass
 class BehaviourCloningConfig(VideoPolicyConfig, RetiredJEPTOptions):
     """Base of the baselines that clone actions from the k context frames (``jept_dt_star``,
-    ``jept_vid2robot``, ``jept_lapo``): JEPT's sizes, no joint embedding target, samples of k frames without a
-    next one."""
+    ``jept_vid2robot``, and ``jept_lapo``, which also reads the next frame): JEPT's sizes, no joint embedding
+    target, samples of k frames without a next one."""
 
     drop_n_last_frames: int = 0
 
