@@ -37,9 +37,8 @@ import time
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
-from torch.utils.flop_counter import FlopCounterMode
 
-from benchmarks.bench_policy import median_time, step_times, sync
+from benchmarks.bench_policy import gflop, median_time, step_times, sync
 from lerobot_jept import JEPTConfig, JEPTPolicy
 from lerobot_jept.policies.base import CACHE_DTYPES
 from lerobot_jept.policies.jept.modeling_jept import PROMPT_ID, PROMPT_MASK, PROMPT_VIDEO
@@ -114,13 +113,6 @@ def fill_prompt_cache(policy: JEPTPolicy, batch: dict) -> None:
             dtype=CACHE_DTYPES[cfg.prompt_cache_dtype],
             device=batch[PROMPT_ID].device,
         )
-
-
-def gflop(fn) -> float:
-    """GFLOP of one call of ``fn``, as torch's FLOP counter sees them (matrix products, attention)."""
-    with FlopCounterMode(display=False) as counter:
-        fn()
-    return counter.get_total_flops() / 1e9
 
 
 def prompt_cache_speedup(

@@ -7,6 +7,9 @@
   alone (same model, same run): what a control step costs beyond the one frame it must encode. Goal <= 1.1.
   ``select_action_guided_vs_backbone``: the same with the ``plus`` recipe's guidance on (``prompt_dropout``
   0.1, ``prompt_guidance`` 1: the predictor runs under the prompt and under the null prompt). No goal.
+  ``select_action_vs_backbone_flop_ratio``: the same ratio in arithmetic (torch's FLOP counter, one untimed
+  cached step and one backbone pass): the time ratio a device running every FLOP at one rate would reach, so
+  the floor the architecture sets for ``select_action_vs_backbone``.
 - ``train_step_vs_act``: one training step (forward, backward, AdamW) of the small jept configuration / one of
   LeRobot's ACT (its defaults, no pretrained weights) on the same batches of a tiny Meta-World build, same batch
   size. Goal <= 2.
@@ -30,6 +33,7 @@ os.environ.setdefault("HF_LEROBOT_HOME", tempfile.mkdtemp(prefix="jept_bench_hom
 
 import torch  # noqa: E402
 from lerobot.configs.types import FeatureType, PolicyFeature  # noqa: E402
+from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 from lerobot_jept import (  # noqa: E402
     DTStarConfig,
@@ -63,12 +67,20 @@ def step_times(fn, repeats: int, warmup: int = 2) -> list[float]:
     return times
 
 
+def gflop(fn) -> float:
+    """GFLOP of one call of ``fn``, as torch's FLOP counter sees them (matrix products, attention)."""
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return counter.get_total_flops() / 1e9
+
+
 def median_time(fn, repeats: int, warmup: int = 2) -> float:
     return statistics.median(step_times(fn, repeats, warmup))
 
 
-def select_action_speedup(repeats: int) -> tuple[float, float, float, float]:
-    """-> (uncached / cached step time, cached step s, backbone pass s, cached step s with guidance)."""
+def select_action_speedup(repeats: int) -> tuple[float, float, float, float, float]:
+    """-> (uncached / cached step time, cached step s, backbone pass s, cached step s with guidance, cached
+    step GFLOP / backbone pass GFLOP)."""
     features = {
         "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 224, 224)),
         "observation.state": PolicyFeature(FeatureType.STATE, (18,)),
@@ -100,10 +112,15 @@ def select_action_speedup(repeats: int) -> tuple[float, float, float, float]:
         for _ in range(cfg.n_obs_steps):  # a full context, prompt encoded: the steady state of an episode
             policy.select_action(obs)
         times[run] = median_time(lambda p=policy, o=obs: p.select_action(o), repeats, warmup=1)
-    image = obs["observation.image"][:, None]
-    with torch.no_grad():
-        backbone_s = median_time(lambda p=policy: p.model.backbone_tokens(image), repeats, warmup=1)
-    return times["uncached"] / times["cached"], times["cached"], backbone_s, times["guided"]
+        if run == "cached":
+            policy.requires_grad_(False)  # inference: the FLOP counter's module hooks need no autograd
+            step_gflop = gflop(lambda p=policy, o=obs: p.select_action(o))
+            image = obs["observation.image"][:, None]
+            with torch.no_grad():
+                backbone = lambda p=policy, i=image: p.model.backbone_tokens(i)  # noqa: E731
+                backbone_s = median_time(backbone, repeats, warmup=1)
+                flop_ratio = step_gflop / gflop(backbone)
+    return times["uncached"] / times["cached"], times["cached"], backbone_s, times["guided"], flop_ratio
 
 
 def tiny_build() -> str:
@@ -163,12 +180,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
 
-    speedup, cached_s, backbone_s, guided_s = select_action_speedup(args.repeats)
+    speedup, cached_s, backbone_s, guided_s, flop_ratio = select_action_speedup(args.repeats)
     print(f"select_action_cached_s: {cached_s:.3f}")
     print(f"select_action_cached_speedup: {speedup:.2f}")
     print(f"backbone_one_frame_s: {backbone_s:.3f}")
     print(f"select_action_vs_backbone: {cached_s / backbone_s:.2f}")
     print(f"select_action_guided_vs_backbone: {guided_s / backbone_s:.2f}")
+    print(f"select_action_vs_backbone_flop_ratio: {flop_ratio:.2f}")
 
     from lerobot.policies.act.configuration_act import ACTConfig
 
