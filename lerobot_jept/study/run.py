@@ -687,11 +687,17 @@ def plot_table2(cfg: StudyConfig, rows: dict[int, dict[str, dict]], path: Path) 
 def write_report(cfg: StudyConfig) -> Path:
     """``report.md`` (and its plots) from the compare, suite and training outputs of the study."""
     out = output_dir(cfg)
+    own = [
+        f"{m.name} {m.eval_episodes}" for m in cfg.methods if m.eval_episodes not in (None, cfg.eval_episodes)
+    ]
+    episodes = f"{cfg.eval_episodes} evaluation episodes per task and seed" + (
+        f" ({', '.join(own)})" if own else ""
+    )
     lines = [
         f"# Study `{cfg.name}` ({cfg.simulator})",
         "",
         f"Methods: {', '.join(m.name for m in cfg.methods)}; training seeds {cfg.seeds}, {cfg.steps} steps each; "
-        f"{cfg.eval_episodes} evaluation episodes per task and seed (env seeds from {cfg.eval_seed}). Success % "
+        f"{episodes} (env seeds from {cfg.eval_seed}). Success % "
         "is the mean over training seeds with a 95% Student's t interval over seeds (with one seed: a bootstrap "
         "interval over its evaluation episodes).",
         "",
