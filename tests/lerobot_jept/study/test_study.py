@@ -247,9 +247,8 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
             (folder / "results.json").write_text(json.dumps(results))
             runs.setdefault(method, []).append(str(folder))
     compare(CompareConfig(runs=runs, output_dir=out / "s/compare"))
-    next(
-        m for m in cfg.methods if m.name == "JEPT"
-    ).eval_episodes = 20  # a method's own episode count is named
+    jept = next(m for m in cfg.methods if m.name == "JEPT")
+    jept.eval_episodes = 20  # a method's own episode count is named in the header
     report = write_report(cfg).read_text()
     assert "10 evaluation episodes per task and seed (JEPT 20)" in report
     half = 4.302652729911275 * 20 / math.sqrt(3)  # t(0.975, 2) * sd(20, 40, 60) / sqrt(3)
