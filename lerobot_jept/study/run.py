@@ -426,7 +426,7 @@ def policy_type(method: MethodSpec) -> str:
 
 def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list[Step]:
     """``jept-visualize`` of the first JEPT method's first seed against the first other method's, on the probe
-    repo (Figures 3 and 5)."""
+    repo (Figures 3 and 5). Drawn once per split, with the seed list's first seed at that time."""
     jept = [m for m in cfg.methods if policy_type(m) == "jept"]
     others = [m for m in cfg.methods if policy_type(m) != "jept"]
     if not jept:
@@ -444,7 +444,14 @@ def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list
             3, f"--baseline.path={checkpoint(run_folder(output_dir(cfg), split, others[0], seed))}"
         )
         command.insert(4, f"--baseline.device={cfg.device}")
-    return [Step(f"{split.name}/visualize", f"t-SNE figures {split.name}", split_dir, command)]
+    # the marker names the methods, not the seed: a study resumed or extended with another seed list keeps the
+    # figures of the seed they were drawn with
+    signature = ["jept-visualize", split.name, jept[0].name, *[m.name for m in others[:1]]]
+    return [
+        Step(
+            f"{split.name}/visualize", f"t-SNE figures {split.name}", split_dir, command, signature=signature
+        )
+    ]
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -182,6 +182,19 @@ def test_a_marker_of_another_command_is_refused(tmp_path):
         changed.done()
 
 
+def test_figures_drawn_with_one_seed_list_stay_done_when_the_list_grows(tmp_path):
+    first = next(s for s in plan(study(tmp_path, seeds=[2])) if s.key == "s/visualize")
+    assert any("JEPT/seed2" in a for a in first.command)
+    first.folder.mkdir(parents=True)
+    first.marker.write_text(json.dumps({"planned": first.planned}))
+    grown = next(s for s in plan(study(tmp_path, seeds=[1, 2, 3])) if s.key == "s/visualize")
+    assert any("JEPT/seed1" in a for a in grown.command) and grown.done()
+    renamed = study(tmp_path, seeds=[1, 2, 3])
+    renamed.methods[0].name = "JEPT (plus)"
+    with pytest.raises(StudyError, match="another command"):
+        next(s for s in plan(renamed) if s.key == "s/visualize").done()
+
+
 def test_probe_accuracy_on_a_hand_checked_batch():
     predicted = torch.tensor([[0, 1, 2], [3, 3, 3], [6, 5, 4], [1, 1, 1]])
     labels = torch.tensor([[0, 1, 2], [3, 0, 3], [6, 0, 0], [-100, -100, -100]])  # last row unlabelled
