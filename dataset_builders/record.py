@@ -8,16 +8,20 @@ build's episodes do not depend on this overlap.
 """
 
 import atexit
+import ctypes
 import json
 import multiprocessing as mp
 import os
 import queue
 import shutil
+import signal
+import sys
 import threading
 import time
 from collections import defaultdict
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict
+from multiprocessing.managers import SyncManager
 
 import numpy as np
 
@@ -299,7 +303,15 @@ def _record_in_worker(sim, cfg, shard, progress_queue) -> dict:
     return record_shard(sim, cfg, shard, progress)
 
 
+def die_with_parent() -> None:
+    """On Linux, this process gets SIGTERM when the process that started it dies: a killed build leaves no worker
+    behind still writing the shard its re-run records again."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+
+
 def worker_init() -> None:
+    die_with_parent()
     # One render/physics thread per process: the processes are the parallelism.
     os.environ.setdefault("LP_NUM_THREADS", "1")
     import torch
@@ -343,7 +355,9 @@ def run_shards(sim: Simulator, cfg: BuildConfig, shards: list[Shard], progress) 
         finally:
             close_renderer()
     ctx = mp.get_context("spawn")  # a fresh process has no inherited GL context
-    with ctx.Manager() as manager:
+    manager = SyncManager(ctx=ctx)
+    manager.start(die_with_parent)
+    with manager:
         progress_queue = manager.Queue()
         with ProcessPoolExecutor(cfg.num_workers, mp_context=ctx, initializer=worker_init) as pool:
             pending = {pool.submit(_record_in_worker, sim, cfg, shard, progress_queue) for shard in shards}

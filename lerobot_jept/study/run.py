@@ -458,7 +458,97 @@ def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list
 # Running it.
 
 
-def run_step(step: Step, bar: tqdm) -> dict:
+# A step's seconds before any step of its kind has finished, on a 2-core CPU: per training step for ``train`` and
+# ``idm``, per episode and task for ``suite``, else per step. Replaced by what finished steps took.
+PRIOR_SECONDS = {
+    "train": 0.9,
+    "idm": 0.3,
+    "suite": 5.0,
+    "build": 900.0,
+    "random_floor": 150.0,
+    "relabel": 120.0,
+}
+
+
+def cost_key(step: Step) -> tuple[str, ...]:
+    """What a step's cost is estimated from: (method, kind) for a run's steps, (kind,) for a split's."""
+    parts = step.key.split("/")
+    return (parts[1], parts[-1]) if len(parts) == 4 else (parts[-1],)
+
+
+def recorded_seconds(step: Step) -> float | None:
+    if step.always or not step.marker.is_file():
+        return None
+    return json.loads(step.marker.read_text()).get("seconds")
+
+
+def estimate_seconds(cfg: StudyConfig, steps: list[Step]) -> list[float]:
+    """Each step's seconds: what it took, for a finished one; else the mean of the finished steps of its method
+    and kind, else of its kind, else a prior (:data:`PRIOR_SECONDS`)."""
+    seen: dict[tuple[str, ...], list[float]] = {}
+    for step in steps:
+        seconds = recorded_seconds(step)
+        if seconds is not None:
+            key = cost_key(step)
+            seen.setdefault(key, []).append(seconds)
+            if len(key) > 1:
+                seen.setdefault(key[-1:], []).append(seconds)
+    tasks = max(len([*s.demo_tasks, *s.video_tasks, *s.unseen_tasks]) for s in cfg.splits)
+    scale = {"train": cfg.steps, "idm": cfg.steps, "suite": cfg.eval_episodes * tasks}
+    estimates = []
+    for step in steps:
+        seconds = recorded_seconds(step)
+        if seconds is None:
+            key = cost_key(step)
+            known = seen.get(key) or seen.get(key[-1:])
+            kind = key[-1]
+            seconds = float(np.mean(known)) if known else PRIOR_SECONDS.get(kind, 10.0) * scale.get(kind, 1)
+        estimates.append(seconds)
+    return estimates
+
+
+class StudyProgress:
+    """One bar over the whole study, counted in estimated seconds of work so that its ETA means something (a
+    build or a training run weighs what it takes, a summary nothing); it moves while a step runs, up to that
+    step's estimate, and the estimates are renewed from every finished step."""
+
+    def __init__(self, cfg: StudyConfig, steps: list[Step], done: list[bool]):
+        self.cfg, self.steps = cfg, steps
+        self.completed = {i for i, d in enumerate(done) if d}
+        self.estimates = estimate_seconds(cfg, steps)
+        self.current = 0
+        self.bar = tqdm(
+            total=max(sum(self.estimates), 1.0),
+            initial=self.done_seconds(),
+            desc="study",
+            bar_format="{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}{postfix}]",
+            smoothing=0,
+        )
+
+    def done_seconds(self) -> float:
+        return sum(self.estimates[i] for i in self.completed)
+
+    def start(self, step: Step) -> None:
+        self.current = self.steps.index(step)
+        self.bar.set_postfix_str(f"step {len(self.completed) + 1}/{len(self.steps)}: {step.what}")
+
+    def running(self, seconds: float) -> None:
+        """``seconds`` into the current step: the bar moves, at most to 95% of the step's estimate."""
+        self.bar.n = self.done_seconds() + min(seconds, 0.95 * self.estimates[self.current])
+        self.bar.refresh()
+
+    def finish(self) -> None:
+        self.completed.add(self.current)
+        self.estimates = estimate_seconds(self.cfg, self.steps)
+        self.bar.total = max(sum(self.estimates), 1.0)
+        self.bar.n = self.done_seconds()
+        self.bar.refresh()
+
+    def write(self, text: str) -> None:
+        self.bar.write(text)
+
+
+def run_step(step: Step, progress: StudyProgress) -> dict:
     step.folder.mkdir(parents=True, exist_ok=True)
     log = step.folder / f"{step.key.split('/')[-1]}.log"
     start = time.perf_counter()
@@ -466,15 +556,21 @@ def run_step(step: Step, bar: tqdm) -> dict:
     if step.prepare is not None:
         command = step.prepare() or command
     if step.function is not None:
-        bar.write(f"[{step.key}] (in process)")
+        progress.write(f"[{step.key}] (in process)")
         info = step.function()
     else:
-        bar.write(f"\n$ {shlex.join(command)}")
+        progress.write(f"\n$ {shlex.join(command)}")
         env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
         with open(log, "a") as f:
             f.write(f"\n$ {shlex.join(command)}\n")
             f.flush()
-            code = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
+            process = subprocess.Popen(command, stdout=f, stderr=subprocess.STDOUT, env=env)
+            while True:
+                try:
+                    code = process.wait(timeout=10)
+                    break
+                except subprocess.TimeoutExpired:
+                    progress.running(time.perf_counter() - start)
         if code != 0:
             tail = "\n".join(log.read_text().splitlines()[-25:])
             raise StudyError(
@@ -494,19 +590,22 @@ def run_study(cfg: StudyConfig) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     (out / "study.json").write_text(json.dumps(draccus.encode(cfg), indent=2, default=str))
     steps = plan(cfg)
-    todo = [s for s in steps if not s.done()]
-    print(
-        f"jept-study {cfg.name}: {len(steps)} steps, {len(steps) - len(todo)} already done, outputs in {out}"
+    done = [s.done() for s in steps]
+    progress = StudyProgress(cfg, steps, done)
+    left = sum(e for e, d in zip(progress.estimates, done, strict=True) if not d)
+    progress.write(
+        f"jept-study {cfg.name}: {len(steps)} steps, {sum(done)} already done, about {left / 3600:.1f} h of "
+        f"work left (estimated from the finished steps), outputs in {out}"
     )
     start = time.perf_counter()
-    with tqdm(total=len(steps), initial=len(steps) - len(todo), desc="study", unit="step") as bar:
-        for step in steps:
-            if step.done():
+    with progress.bar:
+        for step, finished in zip(steps, done, strict=True):
+            if finished:
                 continue
-            bar.set_postfix_str(step.what)
-            info = run_step(step, bar)
-            bar.write(f"[{step.key}] done in {info['seconds']:.0f} s")
-            bar.update(1)
+            progress.start(step)
+            info = run_step(step, progress)
+            progress.write(f"[{step.key}] done in {info['seconds']:.0f} s")
+            progress.finish()
     report = write_report(cfg)
     print(f"\nStudy finished in {time.perf_counter() - start:.0f} s (this run). Report: {report}")
     return report

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import psutil
 import pytest
 
 from dataset_builders import core
@@ -315,7 +316,8 @@ def test_missing_renderer_names_the_fix(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_killed_build_resumes_without_loss_or_duplicates(tmp_path):
-    """Kill the CLI mid-build (SIGKILL), check the repos, re-run, check the result equals a clean build."""
+    """Kill the CLI mid-build (SIGKILL) with two worker processes, check that they die with it and the repos,
+    re-run, check the result equals a clean build."""
     flags = [
         "--repo_id=test/kill",
         "--demo_tasks=[button-press-v3, reach-v3]",
@@ -326,6 +328,7 @@ def test_killed_build_resumes_without_loss_or_duplicates(tmp_path):
         "--probe_episodes_per_task=0",
         "--image_size=48",
         "--episodes_per_shard=1",
+        "--num_workers=2",
     ]
 
     def args_for(root):
@@ -342,8 +345,12 @@ def test_killed_build_resumes_without_loss_or_duplicates(tmp_path):
     deadline = time.time() + 300
     while time.time() < deadline and len(list(shards.glob("*/*/shard.json"))) < 3:
         time.sleep(0.2)
+    children = psutil.Process(proc.pid).children(recursive=True)
+    assert len(children) >= 2
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    _, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive, "a worker outlived the killed build (it would write the shards the re-run records)"
     done_before = len(list(shards.glob("*/*/shard.json")))
     assert 3 <= done_before < 8, "the kill must land mid-build"
 

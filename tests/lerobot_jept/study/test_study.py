@@ -22,6 +22,8 @@ from lerobot_jept.study.run import (
     SplitSpec,
     StudyConfig,
     StudyError,
+    StudyProgress,
+    estimate_seconds,
     main,
     plan,
     run_folder,
@@ -193,6 +195,42 @@ def test_figures_drawn_with_one_seed_list_stay_done_when_the_list_grows(tmp_path
     renamed.methods[0].name = "JEPT (plus)"
     with pytest.raises(StudyError, match="another command"):
         next(s for s in plan(renamed) if s.key == "s/visualize").done()
+
+
+def test_the_progress_bar_weighs_steps_by_what_finished_ones_took(tmp_path):
+    cfg = study(tmp_path, random_episodes=3)
+    steps = plan(cfg)
+    keys = [s.key for s in steps]
+    before = dict(zip(keys, estimate_seconds(cfg, steps), strict=True))
+    assert before["s/JEPT/seed1/train"] == pytest.approx(0.9 * cfg.steps)  # the prior, per training step
+    assert before["s/JEPT/seed1/suite"] == pytest.approx(5.0 * cfg.eval_episodes * 3)  # per episode and task
+
+    def finish(key: str, seconds: float) -> None:
+        step = steps[keys.index(key)]
+        step.folder.mkdir(parents=True, exist_ok=True)
+        step.marker.write_text(json.dumps({"planned": step.planned, "seconds": seconds}))
+
+    finish("s/build", 700.0)
+    finish("s/JEPT/seed1/train", 1300.0)
+    finish("s/BC+IDM/seed1/train", 500.0)
+    after = dict(zip(keys, estimate_seconds(cfg, steps), strict=True))
+    assert after["s/build"] == 700.0 and after["s/JEPT/seed1/train"] == 1300.0  # what they took
+    assert after["s/JEPT/seed2/train"] == 1300.0 and after["s/BC+IDM/seed2/train"] == 500.0  # same method
+    assert after["s/BC+IDM/seed1/idm"] == pytest.approx(0.3 * cfg.steps)  # no idm finished: its prior
+
+    progress = StudyProgress(cfg, steps, [s.done() for s in steps])
+    done = 700.0 + 1300.0 + 500.0
+    assert progress.bar.n == pytest.approx(done) and progress.bar.total == pytest.approx(sum(after.values()))
+    suite = steps[keys.index("s/JEPT/seed2/suite")]
+    progress.start(suite)
+    assert "step 4/" in progress.bar.postfix
+    progress.running(10_000.0)  # past its estimate: the bar stops short of the step's end
+    assert progress.bar.n == pytest.approx(done + 0.95 * after["s/JEPT/seed2/suite"])
+    finish("s/JEPT/seed2/suite", 40.0)  # quicker than estimated: the other suites of JEPT follow it
+    progress.finish()
+    assert progress.bar.n == pytest.approx(done + 40.0)
+    assert progress.estimates[keys.index("s/JEPT/seed1/suite")] == 40.0
+    progress.bar.close()
 
 
 def test_probe_accuracy_on_a_hand_checked_batch():
