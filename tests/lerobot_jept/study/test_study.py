@@ -20,6 +20,7 @@ from lerobot_jept.study.run import (
     BuildSpec,
     MethodSpec,
     SplitSpec,
+    Step,
     StudyConfig,
     StudyError,
     StudyProgress,
@@ -27,6 +28,8 @@ from lerobot_jept.study.run import (
     main,
     plan,
     run_folder,
+    run_group,
+    step_groups,
     training_curves,
     validate,
     write_report,
@@ -223,14 +226,66 @@ def test_the_progress_bar_weighs_steps_by_what_finished_ones_took(tmp_path):
     assert progress.bar.n == pytest.approx(done) and progress.bar.total == pytest.approx(sum(after.values()))
     suite = steps[keys.index("s/JEPT/seed2/suite")]
     progress.start(suite)
-    assert "step 4/" in progress.bar.postfix
-    progress.running(10_000.0)  # past its estimate: the bar stops short of the step's end
+    assert "3/" in progress.bar.postfix and suite.what in progress.bar.postfix
+    progress.running_since[keys.index(suite.key)] -= (
+        10_000.0  # past its estimate: the bar stops short of its end
+    )
+    progress.running()
     assert progress.bar.n == pytest.approx(done + 0.95 * after["s/JEPT/seed2/suite"])
     finish("s/JEPT/seed2/suite", 40.0)  # quicker than estimated: the other suites of JEPT follow it
-    progress.finish()
+    progress.finish(suite)
     assert progress.bar.n == pytest.approx(done + 40.0)
     assert progress.estimates[keys.index("s/JEPT/seed1/suite")] == 40.0
     progress.bar.close()
+
+
+def test_runs_go_in_parallel_between_the_split_steps_each_in_order(tmp_path):
+    cfg = study(tmp_path, random_episodes=3, seeds=[1, 2, 3])
+    groups = step_groups(plan(cfg))
+    assert [[s.key for s in run] for run in groups[0]] == [["s/build"]]
+    assert [[s.key for s in run] for run in groups[1]] == [["s/random_floor"]]
+    runs = groups[2]
+    assert len(runs) == 2 * 3 and [s.key for s in runs[1]] == [
+        "s/BC+IDM/seed1/idm",
+        "s/BC+IDM/seed1/relabel",
+        "s/BC+IDM/seed1/train",
+        "s/BC+IDM/seed1/suite",
+    ]
+    assert [[[s.key for s in run] for run in group] for group in groups[3:]] == [
+        [["s/visualize"]],
+        [["s/compare"]],
+    ]
+
+    # two runs of two steps each, for real: the runs overlap, each run's steps keep their order, and every
+    # command gets cores // 2 torch threads
+    def step(key: str) -> Step:
+        script = (
+            "import os, sys, time; start = time.time(); time.sleep(2); "
+            "print(start, time.time(), os.environ.get('OMP_NUM_THREADS'))"
+        )
+        return Step(key, key, tmp_path / "runs" / key.replace("/", "_"), [sys.executable, "-c", script])
+
+    def times(step: Step) -> list[str]:
+        return (step.folder / f"{step.key.split('/')[-1]}.log").read_text().strip().splitlines()[-1].split()
+
+    run_a = [step("s/A/seed1/train"), step("s/A/seed1/suite")]
+    run_b = [step("s/B/seed1/train"), step("s/B/seed1/suite")]
+    progress = StudyProgress(cfg, run_a + run_b, [False] * 4)
+    run_group([run_a, run_b], progress, parallel=2)
+    progress.bar.close()
+    assert all(s.done() for s in run_a + run_b)
+    (a0, a1, threads), (b0, b1, _) = times(run_a[0]), times(run_b[0])
+    assert float(b0) < float(a1) and float(a0) < float(b1)  # the two runs' first steps overlap
+    for run in (run_a, run_b):
+        assert float(times(run[0])[1]) <= float(times(run[1])[0])  # a run's steps one after the other
+    assert threads == str(max(1, (os.cpu_count() or 1) // 2))
+
+    # a failing run stops the group with its step's log; the other run finishes the step it was on
+    bad = Step("s/C/seed1/train", "bad", tmp_path / "bad", [sys.executable, "-c", "raise SystemExit(3)"])
+    slow = [step("s/D/seed1/train"), step("s/D/seed1/suite")]
+    with pytest.raises(StudyError, match="s/C/seed1/train failed"):
+        run_group([[bad], slow], StudyProgress(cfg, [bad, *slow], [False] * 3), parallel=2)
+    assert slow[0].done()
 
 
 def test_probe_accuracy_on_a_hand_checked_batch():
