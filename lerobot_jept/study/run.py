@@ -1,6 +1,6 @@
 """``jept-study``: the paper's experiments as one resumable command.
 
-    jept-study --config=examples/studies/cpu_small.json [--output_dir=DIR] [--device=cpu|cuda]
+    jept-study --config=examples/studies/cpu_small.json [--output_dir=DIR] [--device=cpu|cuda] [--parallel=2]
 
 A study file (JSON, read with draccus into :class:`StudyConfig`; every field can also be given on the command
 line, e.g. ``--seeds='[1000]'``) names the simulator, one or more splits (several: the paper's Table 2), the
@@ -18,6 +18,10 @@ entry points in order and prints each command before it runs it:
 5. ``report.md`` with the tables (mean and 95% interval over seeds, the paper's numbers beside ours on the
    paper's split, the random floor), the offline probe per split, and plots: grouped success bars, training
    curves of loss_obs / loss_act per method, and (several splits) success against the number of video tasks.
+
+With ``parallel`` N > 1, up to N runs (a method's seed) go at once, each with cores // N torch threads; the
+split-level steps (build, floor, figures, comparison) run alone. One progress bar, in estimated seconds of work,
+gives the ETA.
 
 Resumable: every finished step leaves a marker (``<step>.done.json``) and is skipped on re-run; a training run
 killed after a checkpoint resumes from it (``lerobot-train --resume=true``), one killed before restarts clean.
