@@ -529,6 +529,9 @@ class StudyProgress:
         self.estimates = estimate_seconds(cfg, steps)
         self.running_since: dict[int, float] = {}
         self.lock = threading.Lock()
+        # in a log file (not a terminal) every redraw stays: redraw while a step runs every 5 minutes, not 10 s
+        self.redraw_every = 0.0 if sys.stderr.isatty() else 300.0
+        self.shown_at = -math.inf
         self.bar = tqdm(
             total=max(sum(self.estimates), 1.0),
             initial=self.done_seconds(),
@@ -548,7 +551,8 @@ class StudyProgress:
     def running(self) -> None:
         """The bar moves with the running steps, each at most to 95% of its estimate."""
         with self.lock:
-            self._show()
+            if time.perf_counter() - self.shown_at >= self.redraw_every:
+                self._show()
 
     def finish(self, step: Step) -> None:
         with self.lock:
@@ -560,7 +564,7 @@ class StudyProgress:
             self._show()
 
     def _show(self) -> None:
-        now = time.perf_counter()
+        now = self.shown_at = time.perf_counter()
         self.bar.n = self.done_seconds() + sum(
             min(now - since, 0.95 * self.estimates[i]) for i, since in self.running_since.items()
         )
