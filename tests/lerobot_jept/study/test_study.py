@@ -227,9 +227,8 @@ def test_the_progress_bar_weighs_steps_by_what_finished_ones_took(tmp_path):
     suite = steps[keys.index("s/JEPT/seed2/suite")]
     progress.start(suite)
     assert "3/" in progress.bar.postfix and suite.what in progress.bar.postfix
-    progress.running_since[keys.index(suite.key)] -= (
-        10_000.0  # past its estimate: the bar stops short of its end
-    )
+    # past its estimate: the bar stops short of the step's end
+    progress.running_since[keys.index(suite.key)] -= 10_000.0
     progress.redraw_every = 0.0  # as in a terminal
     progress.running()
     assert progress.bar.n == pytest.approx(done + 0.95 * after["s/JEPT/seed2/suite"])
