@@ -777,6 +777,19 @@ def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", summary
 
 
+def log_freq(cfg: StudyConfig, method: MethodSpec, folder: Path) -> int:
+    """The run's ``log_freq``: from its checkpoint's config, or (a run kept without its checkpoints) from what
+    the study gave ``lerobot-train``: the method's config file and the flags after it."""
+    config = checkpoint(folder) / "train_config.json"
+    if config.is_file():
+        return json.loads(config.read_text()).get("log_freq", 1)
+    freq = json.loads(Path(method.config).read_text()).get("log_freq", 200)  # LeRobot's default
+    for arg in [*cfg.train_args, *method.args]:
+        if arg.startswith("--log_freq="):
+            freq = int(arg.split("=", 1)[1])
+    return freq
+
+
 def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, list[list[float]]]]:
     """loss_obs / loss_act per logged step of every run, from the lerobot-train logs."""
     out = output_dir(cfg)
@@ -785,10 +798,9 @@ def training_curves(cfg: StudyConfig, split: SplitSpec) -> dict[str, dict[str, l
         for seed in cfg.seeds:
             folder = run_folder(out, split, method, seed)
             log = folder / "train.log"
-            config = checkpoint(folder) / "train_config.json"
-            if not log.is_file() or not config.is_file():
+            if not log.is_file():
                 continue
-            freq = json.loads(config.read_text()).get("log_freq", 1)
+            freq = log_freq(cfg, method, folder)
             series: dict[str, list[float]] = {}
             for line in log.read_text().splitlines():
                 if line.startswith("$ "):

@@ -5,6 +5,7 @@ import json
 import math
 import os
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -175,6 +176,14 @@ def test_training_curves_drop_what_a_killed_run_logged_past_its_checkpoint(tmp_p
         + logged([0, 0, 2, 1]).split("\n", 2)[2]
     )
     assert training_curves(cfg, split)["JEPT"]["loss_act"] == [([1, 2, 3, 4], [4.0, 3.0, 2.0, 1.0])]
+
+    # a run kept without its checkpoints (an archived study): log_freq from the flags the study gave
+    shutil.rmtree(step.folder / "train")
+    flagged = dataclasses.replace(cfg, train_args=["--log_freq=1"])
+    assert training_curves(flagged, split)["JEPT"]["loss_act"] == [([1, 2, 3, 4], [4.0, 3.0, 2.0, 1.0])]
+    (step.folder / "train.log").write_text(f"$ lerobot-train --seed=1\n{logged([4, 3])}\n")
+    every = json.loads((CONFIGS / "train_jept_small_cpu.json").read_text())["log_freq"]  # the method's config
+    assert training_curves(cfg, split)["JEPT"]["loss_act"] == [([every, 2 * every], [4.0, 3.0])]
 
 
 def test_a_marker_of_another_command_is_refused(tmp_path):
