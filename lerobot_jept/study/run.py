@@ -1047,7 +1047,7 @@ def preregistered_test(cfg: StudyConfig) -> tuple[list[str], dict]:
         "",
         f"Fixed in the study file before it ran: on each video-only task (a case), {test.method} against "
         f"{test.baseline} over training seeds; a case passes when the difference of the means exceeds the "
-        f"larger seed range. The hypothesis needs at least {test.min_cases} of {len(cases)} cases passing, a mean "
+        f"larger seed range. The hypothesis needs at least {test.min_cases} cases passing (of {len(cases)}), a mean "
         f"of at least {test.goal_mean:.0f}% over the cases, and every case under the scene-mate's prompt within "
         f"its random floor (upper end of the floor's 95% Wilson interval + {test.floor_margin:.0f}).",
         "",
@@ -1068,7 +1068,52 @@ def preregistered_test(cfg: StudyConfig) -> tuple[list[str], dict]:
         f"{mean:.1f}%. The hypothesis **{'holds' if verdict['holds'] else 'does not hold'}**.",
         "",
     ]
+    if done:
+        plot_test(test, done, out / "test.png")
+        lines += ["![the test's cases](test.png)", ""]
     return lines, verdict
+
+
+def plot_test(test: PreRegisteredTest, cases: list[dict], path: Path) -> None:
+    """Per case: the method's and the baseline's success per training seed (dots) and mean (bars), the
+    method's under the scene-mate's prompt, and the upper end of the random floor's interval (a dash)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(cases) + 2), 4))
+    xs = np.arange(len(cases))
+    width = 0.27
+    bars = (
+        (test.method, "method_seeds", -width),
+        (test.baseline, "baseline_seeds", 0.0),
+    )
+    for label, key, offset in bars:
+        means = [np.mean(c[key]) for c in cases]
+        ax.bar(xs + offset, means, width, alpha=0.85, label=f"{label} (dots: seeds)")
+        for x, c in zip(xs, cases, strict=True):
+            ax.plot([x + offset] * len(c[key]), c[key], "k.", markersize=5)
+    mates = [c["scene_mate_success"] for c in cases]
+    ax.bar(
+        xs + width,
+        np.nan_to_num(mates),
+        width,
+        hatch="//",
+        fill=False,
+        label=f"{test.method}, scene-mate's prompt",
+    )
+    ax.plot(
+        xs, [c["floor_upper"] for c in cases], "r_", markersize=28, mew=2, label="random floor, upper 95%"
+    )
+    ax.set_xticks(xs, [f"{c['task'].removesuffix('-v3')}\n({c['split']})" for c in cases], fontsize=8)
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title("the pre-registered test: each video-only task over training seeds")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def success_table(comparison: dict, floor: dict | None, split: SplitSpec) -> list[str]:

@@ -425,6 +425,7 @@ def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
     assert b["within_floor"] and b["floor_upper"] == pytest.approx(16.1, abs=0.1)  # Wilson, 0 of 20
     assert verdict["cases_passed"] == 1 and verdict["mean_success"] == pytest.approx((70 + 30) / 2)
     assert verdict["holds"] and "The hypothesis **holds**" in report
+    assert "![the test's cases](test.png)" in report and (out / "test.png").stat().st_size > 10_000
     assert "| s | b | 60 / 70 / 80 | 10 / 0 / 20 | +60.0 | 20.0 | yes |" in report
 
     strict = dataclasses.replace(cfg, test=PreRegisteredTest(method="R", baseline="R0", min_cases=2))
