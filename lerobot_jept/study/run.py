@@ -483,8 +483,8 @@ PRIOR_SECONDS = {
 
 def cost_key(step: Step) -> tuple[str, ...]:
     """What a step's cost is estimated from: (method, kind) for a run's steps, (kind,) for a split's."""
-    parts = step.key.split("/")
-    return (parts[1], parts[-1]) if len(parts) == 4 else (parts[-1],)
+    run, kind = run_of(step), step.key.split("/")[-1]
+    return (run[1], kind) if run else (kind,)
 
 
 def recorded_seconds(step: Step) -> float | None:
@@ -496,9 +496,9 @@ def recorded_seconds(step: Step) -> float | None:
 def estimate_seconds(cfg: StudyConfig, steps: list[Step]) -> list[float]:
     """Each step's seconds: what it took, for a finished one; else the mean of the finished steps of its method
     and kind, else of its kind, else a prior (:data:`PRIOR_SECONDS`)."""
+    recorded = [recorded_seconds(step) for step in steps]  # each marker read once
     seen: dict[tuple[str, ...], list[float]] = {}
-    for step in steps:
-        seconds = recorded_seconds(step)
+    for step, seconds in zip(steps, recorded, strict=True):
         if seconds is not None:
             key = cost_key(step)
             seen.setdefault(key, []).append(seconds)
@@ -507,8 +507,7 @@ def estimate_seconds(cfg: StudyConfig, steps: list[Step]) -> list[float]:
     tasks = max(len([*s.demo_tasks, *s.video_tasks, *s.unseen_tasks]) for s in cfg.splits)
     scale = {"train": cfg.steps, "idm": cfg.steps, "suite": cfg.eval_episodes * tasks}
     estimates = []
-    for step in steps:
-        seconds = recorded_seconds(step)
+    for step, seconds in zip(steps, recorded, strict=True):
         if seconds is None:
             key = cost_key(step)
             known = seen.get(key) or seen.get(key[-1:])
