@@ -64,7 +64,7 @@ def test_no_import_cycle():
     assert (
         len(graph) > 40
         and "lerobot_jept.evaluation.suite"
-        in graph["lerobot_jept.study.run"] | graph["lerobot_jept.evaluation.compare"]
+        in graph["lerobot_jept.study.plan"] | graph["lerobot_jept.evaluation.compare"]
     )
     assert cycles(graph) == []
 

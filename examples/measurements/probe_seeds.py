@@ -21,7 +21,7 @@ import draccus
 import numpy as np
 from scipy import stats
 
-from lerobot_jept.study.run import probe_fmt, probe_interval
+from lerobot_jept.study.report import probe_fmt, probe_interval
 
 TASK_MEASURES = (
     ("control_whole", "control whole (%)"),

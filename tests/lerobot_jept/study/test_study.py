@@ -17,24 +17,10 @@ import torch
 
 from lerobot_jept.evaluation.compare import CompareConfig, compare
 from lerobot_jept.evaluation.prompt_probe import bin_accuracy, split_summary
-from lerobot_jept.study.run import (
-    BuildSpec,
-    MethodSpec,
-    SplitSpec,
-    Step,
-    StudyConfig,
-    StudyError,
-    StudyProgress,
-    estimate_seconds,
-    main,
-    plan,
-    run_folder,
-    run_group,
-    step_groups,
-    training_curves,
-    validate,
-    write_report,
-)
+from lerobot_jept.study.config import BuildSpec, MethodSpec, SplitSpec, StudyConfig, StudyError, validate
+from lerobot_jept.study.plan import Step, plan, run_folder
+from lerobot_jept.study.report import training_curves, write_report
+from lerobot_jept.study.run import StudyProgress, estimate_seconds, main, run_group, step_groups
 from tests.conftest import TINY
 from tests.lerobot_jept.policies.test_baselines import suite_output
 
@@ -383,7 +369,7 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
 def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
     """Two cases (video-only tasks b, d): b passes (margin above both seed ranges, scene-mate's prompt at the
     floor), d fails (inside the spread); the verdict needs min_cases passing, the goal mean and the floor."""
-    from lerobot_jept.study.run import PreRegisteredTest
+    from lerobot_jept.study.config import PreRegisteredTest
 
     split = {"demo": ["a"], "video": ["b", "d"], "unseen": []}
     cfg = study(
