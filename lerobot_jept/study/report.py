@@ -257,6 +257,10 @@ def write_report(cfg: StudyConfig) -> Path:
     if len(cfg.splits) > 1 and table2:
         plot_table2(cfg, table2, out / "table2.png")
         lines += ["## Success against the number of video-only tasks", "", "![table 2](table2.png)", ""]
+    text, summary = video_only_summary(cfg)
+    if summary:
+        (out / "video_only.json").write_text(json.dumps(summary, indent=2))
+        lines += text
     if cfg.test is not None:
         text, verdict = preregistered_test(cfg)
         (out / "test.json").write_text(json.dumps(verdict, indent=2))
@@ -264,6 +268,110 @@ def write_report(cfg: StudyConfig) -> Path:
     report = out / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
+    """Every method on every split's video-only tasks, read on the episodes all methods ran (the first E env
+    seeds, E the smallest ``eval_episodes`` among them, so that every column sees the same episodes): successes
+    per case and training seed, the mean over cases per seed, its mean [95% t] over the seeds that finished every
+    case, and Welch's p over those seeds against the first method. Exploratory beside the pre-registered test."""
+    from scipy import stats
+
+    out = output_dir(cfg)
+    episodes = min(m.eval_episodes or cfg.eval_episodes for m in cfg.methods)
+    cases = [(split, task) for split in cfg.splits for task in split.video_tasks]
+    summary: dict[str, dict] = {}
+    for method in cfg.methods:
+        counts = {}
+        for seed in cfg.seeds:
+            row = []
+            for split, task in cases:
+                path = run_folder(out, split, method, seed) / "suite/results.json"
+                result = json.loads(path.read_text())["per_task"].get(task) if path.is_file() else None
+                row.append(None if result is None else int(sum(result["successes"][:episodes])))
+            counts[seed] = row
+        complete = {s: 100.0 * float(np.mean(row)) / episodes for s, row in counts.items() if None not in row}
+        summary[method.name] = {"counts": counts, "seed_means": complete}
+    if all(c is None for s in summary.values() for row in s["counts"].values() for c in row):
+        return [], {}
+    first = cfg.methods[0].name
+    header = [f"{task.removesuffix('-v3')} ({split.name})" for split, task in cases]
+    lines = [
+        "## Video-only tasks, every split",
+        "",
+        f"Successes of {episodes} per training seed ({', '.join(map(str, cfg.seeds))}; env seeds from "
+        f"{cfg.eval_seed}, the episodes every method ran), and the mean over the cases per seed: mean [95% t "
+        f"interval] over the seeds that finished every case, Welch's p over seeds against {first}. Exploratory: "
+        "not the study's pre-registered test.",
+        "",
+        "| method | " + " | ".join(header) + " | mean % | per seed | p vs first |",
+        "|---|" + "---|" * (len(header) + 3),
+    ]
+    reference = list(summary[first]["seed_means"].values())
+    for name, s in summary.items():
+        cells = [
+            " / ".join(
+                "-" if s["counts"][seed][i] is None else str(s["counts"][seed][i]) for seed in cfg.seeds
+            )
+            for i in range(len(cases))
+        ]
+        values = list(s["seed_means"].values())
+        mean, low, high = interval(values)
+        low, high = max(low, 0.0), min(high, 100.0)  # NaN (one seed) stays NaN
+        p = (
+            float(stats.ttest_ind(values, reference, equal_var=False).pvalue)
+            if name != first and len(values) > 1 and len(reference) > 1
+            else math.nan
+        )
+        s.update(mean=mean, low=low, high=high, p_vs_first=p)
+        per_seed = ", ".join(f"{v:.1f}" for v in values) or "-"
+        lines.append(
+            f"| {name} | "
+            + " | ".join(cells)
+            + f" | {fmt(mean, low, high)} | {per_seed} | "
+            + ("-" if p != p else f"{p:.2f}")
+            + " |"
+        )
+    floors = []
+    for split, task in cases:
+        path = out / slug(split.name) / "random_floor.done.json"
+        outcomes = json.loads(path.read_text())["per_task"].get(task, {}) if path.is_file() else {}
+        floors.append(int(sum(outcomes["successes"][:episodes])) if "successes" in outcomes else None)
+    floor_mean = 100.0 * float(np.mean(floors)) / episodes if None not in floors else math.nan
+    lines.append(
+        "| random 7-bin (floor) | "
+        + " | ".join("-" if f is None else str(f) for f in floors)
+        + f" | {fmt(floor_mean, math.nan, math.nan)} | | |"
+    )
+    lines += ["", "![video-only tasks, every split](video_only.png)"]
+    plot_video_only(summary, floor_mean, out / "video_only.png", episodes)
+    return lines + [""], {"episodes": episodes, "cases": header, "methods": summary, "floor": floors}
+
+
+def plot_video_only(summary: dict, floor_mean: float, path: Path, episodes: int) -> None:
+    """The mean over the video-only cases per method: per training seed (dots) and over seeds (bars), the
+    random floor's mean (a dashed line)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(summary)
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.2 * len(names) + 2), 3.8))
+    for x, name in enumerate(names):
+        values = list(summary[name]["seed_means"].values())
+        ax.bar(x, np.mean(values) if values else 0.0, 0.6, alpha=0.85)
+        ax.plot([x] * len(values), values, "k.", markersize=6)
+    if floor_mean == floor_mean:
+        ax.axhline(floor_mean, color="r", linestyle="--", label="random 7-bin")
+        ax.legend(fontsize=8)
+    ax.set_xticks(range(len(names)), names, fontsize=8, rotation=15)
+    ax.set_ylabel(f"video-only success (%, {episodes} episodes per case)")
+    ax.set_ylim(0, 100)
+    ax.set_title("mean over every split's video-only tasks (dots: training seeds)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def case_successes(cfg: StudyConfig, split: SplitSpec, method: str, task: str) -> tuple[list, list]:

@@ -421,6 +421,57 @@ def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
         validate(dataclasses.replace(cfg, test=PreRegisteredTest(method="R", baseline="nope")))
 
 
+def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(tmp_path):
+    """Two splits, one video-only task each. R ran 20 episodes per case, R0 10: both are read on the first 10,
+    so R's successes in its last 10 episodes do not count. R0's seed 3 has no suite on the second split: its
+    mean and interval come from seeds 1 and 2 only. Welch's p is against the first method, over seeds."""
+    from scipy import stats
+
+    splits = [SplitSpec("s1", "test/x", ["a"], ["b"], []), SplitSpec("s2", "test/y", ["b"], ["a"], [])]
+    jept = str(CONFIGS / "train_jept_small_cpu.json")
+    cfg = study(
+        tmp_path,
+        splits=splits,
+        methods=[
+            MethodSpec("R", config=jept, eval_episodes=20),
+            MethodSpec("R0", config=jept, data="labelled"),
+        ],
+        seeds=[1, 2, 3],
+    )
+    out = Path(cfg.output_dir)
+    # successes in the first ten episodes per (split, seed); R also succeeds in all of its last ten
+    hits = {"R": {"s1": [4, 6, 8], "s2": [2, 2, 5]}, "R0": {"s1": [1, 0, 2], "s2": [0, 3, None]}}
+    for method in cfg.methods:
+        episodes = method.eval_episodes or cfg.eval_episodes
+        for split in splits:
+            task = split.video_tasks[0]
+            for i, seed in enumerate(cfg.seeds):
+                n = hits[method.name][split.name][i]
+                if n is None:
+                    continue
+                outcome = [True] * n + [False] * (10 - n) + [True] * (episodes - 10)
+                folder = run_folder(out, split, method, seed) / "suite"
+                suite_output(folder, {"demo": [], "video": [task], "unseen": []}, {task: outcome})
+        (out / split.name).mkdir(parents=True, exist_ok=True)
+    for split, floor in zip(splits, (3, 1), strict=True):
+        outcomes = [True] * floor + [False] * (20 - floor)
+        (out / split.name / "random_floor.done.json").write_text(
+            json.dumps({"per_task": {split.video_tasks[0]: {"successes": outcomes}}})
+        )
+    report = write_report(cfg).read_text()
+    summary = json.loads((out / "video_only.json").read_text())
+    assert summary["episodes"] == 10 and summary["cases"] == ["b (s1)", "a (s2)"]
+    r, r0 = summary["methods"]["R"], summary["methods"]["R0"]
+    assert r["seed_means"] == {"1": 30.0, "2": 40.0, "3": 65.0} and r["mean"] == pytest.approx(45.0)
+    assert r0["seed_means"] == {"1": 5.0, "2": 15.0} and r0["counts"]["3"] == [2, None]
+    expected = stats.ttest_ind([5.0, 15.0], [30.0, 40.0, 65.0], equal_var=False).pvalue
+    assert r0["p_vs_first"] == pytest.approx(expected) and r["p_vs_first"] != r["p_vs_first"]  # NaN
+    assert summary["floor"] == [3, 1]
+    assert "| R0 | 1 / 0 / 2 | 0 / 3 / - | 10.0 [0.0, 73.5] | 5.0, 15.0 |" in report
+    assert "| random 7-bin (floor) | 3 | 1 | 20.0 | | |" in report
+    assert (out / "video_only.png").stat().st_size > 10_000
+
+
 @pytest.mark.slow
 def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build, tmp_path):
     """The real entry points on the tests' tiny build (its builder re-run is a no-op): JEPT and BC+IDM, one
