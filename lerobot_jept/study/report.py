@@ -37,16 +37,28 @@ def probe_fmt(stats: tuple[float, float, float], measure: str) -> str:
     return fmt(*stats, digits=digits, scale=scale)
 
 
+def run_results(out: Path, split: SplitSpec, method: MethodSpec, seed: int) -> dict | None:
+    """A run's ``jept-eval-suite`` results (``suite/results.json``); None before its suite has run."""
+    path = run_folder(out, split, method, seed) / "suite/results.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def floor_per_task(out: Path, split: SplitSpec) -> dict:
+    """The random 7-bin floor's outcomes per task of the split; empty before the floor has run."""
+    path = out / slug(split.name) / "random_floor.done.json"
+    return json.loads(path.read_text())["per_task"] if path.is_file() else {}
+
+
 def probe_table(cfg: StudyConfig, split: SplitSpec) -> tuple[str, dict]:
     """The offline probe per split group, mean [95% interval] over seeds, per method."""
     out = output_dir(cfg)
     values: dict[str, dict[str, dict[str, list[float]]]] = {}
     for method in cfg.methods:
         for seed in cfg.seeds:
-            path = run_folder(out, split, method, seed) / "suite/results.json"
-            if not path.is_file():
+            results = run_results(out, split, method, seed)
+            if results is None:
                 continue
-            probe = json.loads(path.read_text()).get("prompt_probe") or {}
+            probe = results.get("prompt_probe") or {}
             for group, row in probe.get("splits", {}).items():
                 for measure in PROBE_MEASURES:
                     if measure in row:
@@ -285,10 +297,11 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         counts = {}
         for seed in cfg.seeds:
             row = []
-            for split, task in cases:
-                path = run_folder(out, split, method, seed) / "suite/results.json"
-                result = json.loads(path.read_text())["per_task"].get(task) if path.is_file() else None
-                row.append(None if result is None else int(sum(result["successes"][:episodes])))
+            for split in cfg.splits:
+                per_task = (run_results(out, split, method, seed) or {}).get("per_task", {})
+                for task in split.video_tasks:
+                    result = per_task.get(task)
+                    row.append(None if result is None else int(sum(result["successes"][:episodes])))
             counts[seed] = row
         complete = {s: 100.0 * float(np.mean(row)) / episodes for s, row in counts.items() if None not in row}
         summary[method.name] = {"counts": counts, "seed_means": complete}
@@ -333,10 +346,11 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
             + " |"
         )
     floors = []
-    for split, task in cases:
-        path = out / slug(split.name) / "random_floor.done.json"
-        outcomes = json.loads(path.read_text())["per_task"].get(task, {}) if path.is_file() else {}
-        floors.append(int(sum(outcomes["successes"][:episodes])) if "successes" in outcomes else None)
+    for split in cfg.splits:
+        floor = floor_per_task(out, split)
+        for task in split.video_tasks:
+            outcomes = floor.get(task, {})
+            floors.append(int(sum(outcomes["successes"][:episodes])) if "successes" in outcomes else None)
     floor_mean = 100.0 * float(np.mean(floors)) / episodes if None not in floors else math.nan
     lines.append(
         "| random 7-bin (floor) | "
@@ -380,10 +394,7 @@ def case_successes(cfg: StudyConfig, split: SplitSpec, method: str, task: str) -
     spec = next(m for m in cfg.methods if m.name == method)
     own, mate = [], []
     for seed in cfg.seeds:
-        path = run_folder(output_dir(cfg), split, spec, seed) / "suite/results.json"
-        if not path.is_file():
-            continue
-        row = json.loads(path.read_text())["per_task"].get(task)
+        row = (run_results(output_dir(cfg), split, spec, seed) or {}).get("per_task", {}).get(task)
         if row is None:
             continue
         own.append(row["pc_success"])
@@ -400,8 +411,7 @@ def preregistered_test(cfg: StudyConfig) -> tuple[list[str], dict]:
     out = output_dir(cfg)
     cases, lines = [], []
     for split in cfg.splits:
-        floor_path = out / slug(split.name) / "random_floor.done.json"
-        floor = json.loads(floor_path.read_text())["per_task"] if floor_path.is_file() else {}
+        floor = floor_per_task(out, split)
         for task in split.video_tasks:
             arm, arm_mate = case_successes(cfg, split, test.method, task)
             base, _ = case_successes(cfg, split, test.baseline, task)
