@@ -95,6 +95,9 @@ class StudyConfig:
     # Runs (one method's seed: its training and evaluation) at once, each with cores // parallel torch threads.
     # On a 2-core CPU two one-thread runs do about 1.3-1.5 times the work of one two-thread run.
     parallel: int = 1
+    # Build, train and evaluate nothing: compare the runs that have finished and write the report (a study cut
+    # short, or one run in pieces from copies of its file that each wrote a report of their own).
+    report_only: bool = False
 
 
 class StudyError(RuntimeError):

@@ -227,7 +227,14 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 suite += [*cfg.suite_args, *method.suite_args]
                 steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite))
         steps += visualize_steps(cfg, split, split_dir)
-        runs = {m.name: [str(run_folder(out, split, m, s) / "suite") for s in cfg.seeds] for m in cfg.methods}
+        runs = {m.name: [run_folder(out, split, m, s) / "suite" for s in cfg.seeds] for m in cfg.methods}
+        if cfg.report_only:  # the runs that have evaluated
+            runs = {
+                name: [f for f in folders if (f / "results.json").is_file()] for name, folders in runs.items()
+            }
+        runs = {name: [str(f) for f in folders] for name, folders in runs.items() if folders}
+        if not runs:
+            continue
         steps.append(
             Step(
                 f"{split.name}/compare",

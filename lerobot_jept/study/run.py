@@ -1,6 +1,7 @@
 """``jept-study``: the paper's experiments as one resumable command.
 
     jept-study --config=examples/studies/cpu_small.json [--output_dir=DIR] [--device=cpu|cuda] [--parallel=2]
+    jept-study --config=examples/studies/cpu_small.json --report_only=true   # the report from what has finished
 
 A study file (JSON, read with draccus into :class:`StudyConfig`; every field can also be given on the command
 line, e.g. ``--seeds='[1000]'``) names the simulator, one or more splits (several: the paper's Table 2), the
@@ -265,6 +266,16 @@ def run_study(cfg: StudyConfig) -> Path:
     (out / "study.json").write_text(json.dumps(draccus.encode(cfg), indent=2, default=str))
     steps = plan(cfg)
     done = [s.done() for s in steps]
+    todo = [step for step, finished in zip(steps, done, strict=True) if not finished]
+    if cfg.report_only:
+        missing = [step.key for step in todo if not step.always]
+        print(
+            f"jept-study {cfg.name}: the report from {len(steps) - len(todo)} finished steps of {len(steps)}"
+            + (f"; not run: {', '.join(missing)}" if missing else ""),
+            flush=True,
+        )
+        steps = todo = [step for step in todo if step.always]  # the comparisons, over what has finished
+        done = [False] * len(steps)
     progress = StudyProgress(cfg, steps, done)
     left = sum(e for e, d in zip(progress.estimates, done, strict=True) if not d)
     progress.write(
@@ -273,7 +284,6 @@ def run_study(cfg: StudyConfig) -> Path:
     )
     start = time.perf_counter()
     with progress.bar:
-        todo = [step for step, finished in zip(steps, done, strict=True) if not finished]
         for group in step_groups(todo):
             run_group(group, progress, cfg.parallel)
     report = write_report(cfg)

@@ -20,7 +20,7 @@ from lerobot_jept.evaluation.prompt_probe import bin_accuracy, split_summary
 from lerobot_jept.study.config import BuildSpec, MethodSpec, SplitSpec, StudyConfig, StudyError, validate
 from lerobot_jept.study.plan import Step, plan, run_folder
 from lerobot_jept.study.report import training_curves, write_report
-from lerobot_jept.study.run import StudyProgress, estimate_seconds, main, run_group, step_groups
+from lerobot_jept.study.run import StudyProgress, estimate_seconds, main, run_group, run_study, step_groups
 from tests.conftest import TINY
 from tests.lerobot_jept.policies.test_baselines import suite_output
 
@@ -364,6 +364,23 @@ def test_report_numbers_are_those_of_the_suite_outputs(tmp_path):
     bc_idm = "| BC+IDM | T_vid | 0.0 [0.0, 0.0] | 50.0 [50.0, 50.0] | - | - | - | 45.0 [45.0, 45.0] | - | - | - | - |"
     assert bc_idm in report
     assert "compare/comparison.png" in report
+
+
+def test_report_only_compares_what_has_finished_and_runs_nothing_else(tmp_path, capsys):
+    """JEPT's two seeds have evaluated (3 and 5 of 10 on the video task), nothing else has run."""
+    cfg = study(tmp_path, report_only=True)
+    out = Path(cfg.output_dir)
+    for seed, n in zip(cfg.seeds, (3, 5), strict=True):
+        suite = run_folder(out, cfg.splits[0], cfg.methods[0], seed) / "suite"
+        suite_output(
+            suite, SPLIT, {"a": [True] * 10, "b": [True] * n + [False] * (10 - n), "c": [False] * 10}
+        )
+    report = run_study(cfg).read_text()
+    assert "| T_vid | 40.0 [" in report  # JEPT's mean of 30 and 50
+    assert "BC+IDM" not in (out / "s/compare/comparison.md").read_text()  # no run of it has evaluated
+    assert sorted(p.name for p in out.rglob("*.log")) == ["compare.log"]  # no build, training or evaluation
+    printed = capsys.readouterr().out
+    assert "the report from 0 finished steps of 15; not run: s/build, s/JEPT/seed1/train" in printed
 
 
 def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
