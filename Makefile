@@ -23,7 +23,7 @@ PYTEST := $(RUN) -m pytest tests -n $(TEST_WORKERS) --dist loadfile --durations=
 help:
 	@echo "make demo   set up, build a tiny Meta-World mixture, train jept with lerobot-train, run the eval suite"
 	@echo "make study  set up, run examples/studies/cpu_small.json (resumable; about 2 h on a 2-core CPU)"
-	@echo "make study-transfer  set up, run examples/studies/cpu_transfer.json (four scene pairs, both directions; about 7.5 h on a 2-core CPU)"
+	@echo "make study-transfer  set up, run examples/studies/cpu_transfer.json (four scene pairs, both directions; about 8 h on a 2-core CPU)"
 	@echo "make test   set up, lint, run the tests (make test-slow: the slow ones; CI runs both)"
 	@echo "make bench  set up, print the benchmark figures (name: value)"
 
