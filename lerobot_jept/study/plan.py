@@ -23,6 +23,8 @@ class Step:
     always: bool = False  # re-run every time (cheap summaries)
 
     signature: list[str] | None = None  # what the marker must record (default: the command)
+    # A marker that records more than the signature after it still counts (figures drawn with a baseline beside)
+    prefix: bool = False
 
     @property
     def marker(self) -> Path:
@@ -38,7 +40,9 @@ class Step:
         if self.always or not self.marker.is_file():
             return False
         recorded = json.loads(self.marker.read_text()).get("planned")
-        if recorded != self.planned:
+        if recorded != self.planned and not (
+            self.prefix and (recorded or [])[: len(self.planned)] == self.planned
+        ):
             raise StudyError(
                 f"{self.marker} was written for another command:\n  {shlex.join(recorded or [])}\nnow:\n  "
                 f"{shlex.join(self.planned)}\nThe study file changed since that run: pass another --output_dir, "
@@ -257,7 +261,7 @@ def policy_type(method: MethodSpec) -> str:
 
 def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list[Step]:
     """``jept-visualize`` of the first JEPT method's first seed against the first other method's, on the probe
-    repo (Figures 3 and 5). Drawn once per split, with the seed list's first seed at that time."""
+    repo (Figures 3 and 5). Drawn once per split, with the seed list's first seed and the methods at that time."""
     jept = [m for m in cfg.methods if policy_type(m) == "jept"]
     others = [m for m in cfg.methods if policy_type(m) != "jept"]
     if not jept:
@@ -275,12 +279,17 @@ def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list
             3, f"--baseline.path={checkpoint(run_folder(output_dir(cfg), split, others[0], seed))}"
         )
         command.insert(4, f"--baseline.device={cfg.device}")
-    # the marker names the methods, not the seed: a study resumed or extended with another seed list keeps the
-    # figures of the seed they were drawn with
-    signature = ["jept-visualize", split.name, jept[0].name, *[m.name for m in others[:1]]]
+    # the marker names the JEPT method, not the seed nor the baseline: a study resumed or extended with another
+    # seed list, or run in passes (its JEPT arms first, the baselines later), keeps the figures it drew first
+    signature = ["jept-visualize", split.name, jept[0].name]
     return [
         Step(
-            f"{split.name}/visualize", f"t-SNE figures {split.name}", split_dir, command, signature=signature
+            f"{split.name}/visualize",
+            f"t-SNE figures {split.name}",
+            split_dir,
+            command,
+            signature=signature,
+            prefix=True,
         )
     ]
 

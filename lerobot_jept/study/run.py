@@ -259,13 +259,23 @@ def run_group(runs: list[list[Step]], progress: StudyProgress, parallel: int) ->
             raise error
 
 
+def finished(step: Step, report_only: bool) -> bool:
+    """:meth:`Step.done`; for the report alone a marker of another command only means the step has not run."""
+    try:
+        return step.done()
+    except StudyError:
+        if report_only:
+            return False
+        raise
+
+
 def run_study(cfg: StudyConfig) -> Path:
     validate(cfg)
     out = output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     (out / "study.json").write_text(json.dumps(draccus.encode(cfg), indent=2, default=str))
     steps = plan(cfg)
-    done = [s.done() for s in steps]
+    done = [finished(s, cfg.report_only) for s in steps]
     todo = [step for step, finished in zip(steps, done, strict=True) if not finished]
     if cfg.report_only:
         missing = [step.key for step in todo if not step.always]

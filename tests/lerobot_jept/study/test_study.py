@@ -189,6 +189,13 @@ def test_figures_drawn_with_one_seed_list_stay_done_when_the_list_grows(tmp_path
     first.marker.write_text(json.dumps({"planned": first.planned}))
     grown = next(s for s in plan(study(tmp_path, seeds=[1, 2, 3])) if s.key == "s/visualize")
     assert any("JEPT/seed1" in a for a in grown.command) and grown.done()
+    # a study run in passes: figures drawn by a pass with JEPT alone stay done for the whole file, and so do
+    # figures whose marker names the baseline drawn beside
+    alone = study(tmp_path, seeds=[1])
+    alone.methods = alone.methods[:1]
+    assert next(s for s in plan(alone) if s.key == "s/visualize").done()
+    first.marker.write_text(json.dumps({"planned": [*first.planned, "BC+IDM"]}))
+    assert grown.done()
     renamed = study(tmp_path, seeds=[1, 2, 3])
     renamed.methods[0].name = "JEPT (plus)"
     with pytest.raises(StudyError, match="another command"):
@@ -375,12 +382,19 @@ def test_report_only_compares_what_has_finished_and_runs_nothing_else(tmp_path, 
         suite_output(
             suite, SPLIT, {"a": [True] * 10, "b": [True] * n + [False] * (10 - n), "c": [False] * 10}
         )
-    report = run_study(cfg).read_text()
+    figures = next(s for s in plan(cfg) if s.key == "s/visualize")
+    figures.folder.mkdir(parents=True, exist_ok=True)
+    figures.marker.write_text(json.dumps({"planned": ["jept-visualize", "s", "another JEPT"]}))
+    with pytest.raises(StudyError, match="another command"):
+        run_study(dataclasses.replace(cfg, report_only=False))
+    capsys.readouterr()
+    report = run_study(cfg).read_text()  # the report alone: that marker only means the figures have not run
     assert "| T_vid | 40.0 [" in report  # JEPT's mean of 30 and 50
     assert "BC+IDM" not in (out / "s/compare/comparison.md").read_text()  # no run of it has evaluated
     assert sorted(p.name for p in out.rglob("*.log")) == ["compare.log"]  # no build, training or evaluation
     printed = capsys.readouterr().out
     assert "the report from 0 finished steps of 15; not run: s/build, s/JEPT/seed1/train" in printed
+    assert printed.splitlines()[0].endswith(", s/visualize")  # its marker is of another command
 
 
 def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
