@@ -237,21 +237,20 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 name: [f for f in folders if (f / "results.json").is_file()] for name, folders in runs.items()
             }
         runs = {name: [str(f) for f in folders] for name, folders in runs.items() if folders}
-        if not runs:
-            continue
-        steps.append(
-            Step(
-                f"{split.name}/compare",
-                f"compare {split.name}",
-                split_dir,
-                [
-                    bin_path("jept-compare"),
-                    f"--runs={json.dumps(runs)}",
-                    f"--output_dir={split_dir / 'compare'}",
-                ],
-                always=True,
+        if runs:  # none in a report of a study whose runs have not evaluated yet
+            steps.append(
+                Step(
+                    f"{split.name}/compare",
+                    f"compare {split.name}",
+                    split_dir,
+                    [
+                        bin_path("jept-compare"),
+                        f"--runs={json.dumps(runs)}",
+                        f"--output_dir={split_dir / 'compare'}",
+                    ],
+                    always=True,
+                )
             )
-        )
     return steps
 
 

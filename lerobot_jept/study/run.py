@@ -276,7 +276,7 @@ def run_study(cfg: StudyConfig) -> Path:
     (out / "study.json").write_text(json.dumps(draccus.encode(cfg), indent=2, default=str))
     steps = plan(cfg)
     done = [finished(s, cfg.report_only) for s in steps]
-    todo = [step for step, finished in zip(steps, done, strict=True) if not finished]
+    todo = [step for step, ran in zip(steps, done, strict=True) if not ran]
     if cfg.report_only:
         missing = [step.key for step in todo if not step.always]
         print(
