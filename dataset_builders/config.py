@@ -11,6 +11,10 @@ LABELLED_ROLES = ("demo", "play", "probe")  # recorded with the executed action
 # on the labelled frames sees motions the demo tasks' experts never make.
 PLAY_PREFIX = "play:"
 PLAY_HOLD_PROB = 0.8
+# How a play episode picks its actions: ``random`` (a random bin action, held), or ``reach`` (object-centred
+# play: the hand driven to random points around the scene's object with a random gripper command, as a person
+# fiddling with the object would; it needs a simulator that exposes the object's position).
+PLAY_POLICIES = ("random", "reach")
 SPLITS = ("demo", "video", "unseen")
 BUILD_FILE = "jept_build.json"  # written in <work dir>/ and in every repo's meta/
 # Episode seeds: each (role, shard) owns a disjoint block of SEED_BLOCK seeds, so training episodes and
@@ -30,6 +34,7 @@ ADDED_FLAGS = {
     "probe_episodes_per_task": GIVEN_NOW,
     "expert_random_prob": 0.0,
     "play_episodes_per_task": 0,
+    "play_policy": "random",
     "video_episodes_per_task": None,  # episodes_per_task's
 }
 # Flags that change what is written; a repo built with other values is never mixed with new episodes.
@@ -42,6 +47,7 @@ CONTENT_FLAGS = (
     "prompts_per_task",
     "probe_episodes_per_task",
     "play_episodes_per_task",
+    "play_policy",
     "image_size",
     "seed",
     "action_bins",
@@ -110,6 +116,9 @@ class BuildConfig:
             ``play:<task>``: that task's scene, random bin actions each held for a few steps, no expert), with
             ``prompts_per_task`` play prompts each; they join the mix as labelled frames, so inverse dynamics
             covers motions the video-only tasks show and no demo makes. 0 for none.
+        play_policy: how play episodes act: ``random`` (a random bin action held for a few steps) or ``reach``
+            (object-centred: the hand driven to random points around the scene's object, a random gripper
+            command per reach; Meta-World only).
         image_size: side of the square camera image.
         seed: base seed; the same flags and seed give the same episodes.
         num_workers: parallel rollout processes (one simulator env per process).
@@ -144,6 +153,7 @@ class BuildConfig:
     prompts_per_task: int = 10
     probe_episodes_per_task: int = 4
     play_episodes_per_task: int = 0
+    play_policy: str = "random"
     image_size: int = 224
     seed: int = 0
     num_workers: int = 1
@@ -189,6 +199,7 @@ class Simulator(abc.ABC):
 
     name: str  # e.g. "metaworld"
     robot_type: str
+    play_policies: tuple[str, ...] = ("random",)  # ``reach`` needs the env's ``hand_and_object()``
 
     @abc.abstractmethod
     def check_task(self, task: str) -> str:
@@ -244,6 +255,11 @@ def validate(cfg: BuildConfig, sim: Simulator) -> None:
     for name in ("probe_episodes_per_task", "play_episodes_per_task"):
         if getattr(cfg, name) < 0:
             raise BuildError(f"--{name} must be 0 or more, got {getattr(cfg, name)}.")
+    if cfg.play_policy not in sim.play_policies:
+        raise BuildError(
+            f"--play_policy={cfg.play_policy!r} is not available for {sim.name}: use one of "
+            f"{', '.join(sim.play_policies)}."
+        )
     if cfg.executor not in EXECUTORS:
         raise BuildError(f"--executor must be one of {', '.join(EXECUTORS)}, got {cfg.executor!r}.")
     if cfg.tasks is not None and cfg.tasks < 1:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import draccus
 
+from dataset_builders.config import PLAY_POLICIES
 from dataset_builders.core import BuildConfig, BuildError, Simulator, build
 from lerobot_jept.envs import metaworld as mw
 
@@ -29,6 +30,7 @@ class MetaworldBuildConfig(BuildConfig):
 class MetaworldSimulator(Simulator):
     name = "metaworld"
     robot_type = mw.ROBOT_TYPE
+    play_policies = PLAY_POLICIES
 
     def check_task(self, task: str) -> str:
         try:

@@ -84,25 +84,60 @@ def rollout_expert(env, seed: int, action_bins: int, random_prob: float = 0.0) -
 
 
 def rollout_play(
-    env, seed: int, action_bins: int, hold_prob: float = PLAY_HOLD_PROB
+    env, seed: int, action_bins: int, steps: int, policy: str = "random"
 ) -> tuple[list[dict], bool]:
-    """One play episode in ``env``'s scene, as :func:`rollout_expert` records it but without an expert: a
-    uniformly random bin action, kept at each step with probability ``hold_prob`` (else drawn again), until the
-    episode ends. Every play episode is kept (there is no task to succeed at)."""
+    """One play episode of ``steps`` steps in ``env``'s scene, as :func:`rollout_expert` records it but without
+    an expert, acting by ``policy`` (:data:`~dataset_builders.config.PLAY_POLICIES`). There is no task to
+    succeed at: the episode goes on when the scene's task happens to succeed, and every episode is kept."""
     low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
-    centres = bin_centres(action_bins, low, high).astype(np.float32)
     rng = np.random.default_rng([seed, RANDOM_ACTION_STREAM])
+    act = (RandomPlay if policy == "random" else ReachPlay)(rng, action_bins, low, high)
     obs, _ = env.reset(seed=seed)
-    frames, action = [], None
+    frames = []
     while True:
-        if action is None or rng.random() >= hold_prob:
-            action = centres[rng.integers(action_bins, size=env.action_space.shape)]
+        action = act(env)
         frames.append(
             {"observation.image": obs["pixels"], "observation.state": obs["agent_pos"], "action": action}
         )
-        obs, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
+        obs, *_ = env.step(action)
+        if len(frames) == steps:
             return frames, True
+
+
+class RandomPlay:
+    """A uniformly random bin action, kept at each step with probability ``hold_prob`` (else drawn again)."""
+
+    def __init__(self, rng, action_bins: int, low: float, high: float, hold_prob: float = PLAY_HOLD_PROB):
+        self.rng, self.hold_prob, self.action = rng, hold_prob, None
+        self.centres = bin_centres(action_bins, low, high).astype(np.float32)
+
+    def __call__(self, env) -> np.ndarray:
+        if self.action is None or self.rng.random() >= self.hold_prob:
+            self.action = self.centres[self.rng.integers(len(self.centres), size=env.action_space.shape)]
+        return self.action
+
+
+class ReachPlay:
+    """Object-centred play: the hand is driven to a random point within ``radius`` of the scene's object with
+    a random gripper command (open or closed), at the gain of Meta-World's scripted experts, until it is within
+    ``tolerance`` or ``max_steps`` have passed; then the next point. The actions are the experts' kind (mostly
+    saturated moves towards a point), in every direction around the object, so they push and pull its handle
+    both ways whatever the scene's task is."""
+
+    gain, radius, tolerance, max_steps = 10.0, 0.15, 0.02, 30
+
+    def __init__(self, rng, action_bins: int, low: float, high: float):
+        self.rng, self.bins, self.low, self.high = rng, action_bins, low, high
+        self.target, self.grip, self.left = None, 0.0, 0
+
+    def __call__(self, env) -> np.ndarray:
+        hand, obj = env.hand_and_object()
+        if self.left == 0 or np.linalg.norm(self.target - hand) < self.tolerance:
+            self.target = obj + self.rng.uniform(-self.radius, self.radius, size=3)
+            self.grip, self.left = float(self.rng.choice([-1.0, 1.0])), self.max_steps
+        self.left -= 1
+        move = np.clip(self.gain * (self.target - hand), -1.0, 1.0)
+        return snap_to_bins(np.append(move, self.grip), self.bins, self.low, self.high).astype(np.float32)
 
 
 def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> dict:
@@ -260,7 +295,10 @@ def _render_loop(conn) -> None:
             try:
                 env = _env_for(sim, task, cfg, role)
                 if is_play(task):
-                    result = (True, rollout_play(env, seed, cfg.action_bins))
+                    result = (
+                        True,
+                        rollout_play(env, seed, cfg.action_bins, cfg.max_episode_steps, cfg.play_policy),
+                    )
                 else:
                     result = (True, rollout_expert(env, seed, cfg.action_bins, cfg.expert_random_prob))
             except Exception as err:  # handed to the parent, which raises it

@@ -225,6 +225,10 @@ class JeptMetaworldEnv(spec.OneImagePerState):
         expert = self._expert if task is None or task == self.task else scripted_expert(check_task(task))
         return np.asarray(expert.get_action(self._raw_obs), dtype=np.float32)
 
+    def hand_and_object(self) -> tuple[np.ndarray, np.ndarray]:
+        """The end effector's position and the scene's (first) object's, in metres: the handle a task moves."""
+        return self._raw_obs[:3].copy(), self._raw_obs[4:7].copy()
+
     def close(self) -> None:
         if self._env is not None:
             self._viewer.make_context_current()

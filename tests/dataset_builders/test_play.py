@@ -119,10 +119,44 @@ def test_screen_refuses_unlabelled_repos_and_missing_arms(play_build, tmp_path):
 
 
 def test_play_flag_is_checked():
-    from dataset_builders.config import BuildError
+    from dataset_builders.config import BuildError, validate
+    from dataset_builders.robosuite import RobosuiteBuildConfig, RobosuiteSimulator
 
     with pytest.raises(BuildError, match="--play_episodes_per_task must be 0 or more"):
         build(MetaworldBuildConfig(repo_id="test/bad_play", **{**PLAY, "play_episodes_per_task": -1}), SIM)
+    with pytest.raises(
+        BuildError, match="--play_policy='wander' is not available for metaworld: use one of random"
+    ):
+        validate(MetaworldBuildConfig(repo_id="test/bad_play", **PLAY, play_policy="wander"), SIM)
+    robosuite = RobosuiteBuildConfig(repo_id="test/bad_play", play_episodes_per_task=1, play_policy="reach")
+    with pytest.raises(BuildError, match="'reach' is not available for robosuite: use one of random"):
+        validate(robosuite, RobosuiteSimulator())
+
+
+def test_reach_play_moves_the_scenes_object_both_ways_and_runs_to_the_episode_limit():
+    """``--play_policy=reach`` in the drawer-close scene: the drawer is shut within a few reaches (the scene's
+    task succeeds) and the episode goes on to its last step, as play has no task; the actions are bin centres,
+    mostly the experts' saturated moves, with a gripper command held per reach."""
+    from dataset_builders.record import rollout_play
+    from lerobot_jept.envs.metaworld import JeptMetaworldEnv
+
+    env = JeptMetaworldEnv("drawer-close-v3", image_size=32, max_episode_steps=80)
+    try:
+        env.reset(seed=0)
+        start = env.hand_and_object()[1]
+        frames, kept = rollout_play(env, seed=0, action_bins=7, steps=80, policy="reach")
+        drawer = env.hand_and_object()[1]
+        again, _ = rollout_play(env, seed=0, action_bins=7, steps=80, policy="reach")
+    finally:
+        env.close()
+    assert kept and len(frames) == 80
+    assert np.abs(drawer - start).max() > 0.1  # the drawer moved (shut) on the way
+    actions = np.stack([f["action"] for f in frames])
+    assert np.isin(np.round(actions * 3), np.arange(-3, 4)).all()
+    assert set(np.unique(actions[:, 3])) <= {-1.0, 1.0} and len(set(actions[:, 3])) == 2
+    assert (np.abs(actions[:, :3]) == 1).any(1).mean() > 0.5  # moves towards a point, at the experts' gain
+    assert len({tuple(np.sign(a[:3])) for a in actions}) > 6  # in many directions around the object
+    np.testing.assert_array_equal(actions, np.stack([f["action"] for f in again]))  # the seed fixes the play
 
 
 def test_the_suite_prints_the_floor_beside_each_row():
