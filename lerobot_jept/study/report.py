@@ -10,6 +10,7 @@ import numpy as np
 
 from lerobot_jept.evaluation.paper import PAPER_TABLE2
 from lerobot_jept.evaluation.prompt_probe import MEASURES as PROBE_MEASURES
+from lerobot_jept.evaluation.prompt_probe import scene_key
 from lerobot_jept.evaluation.stats import interval, wilson
 from lerobot_jept.study.config import MethodSpec, PreRegisteredTest, SplitSpec, StudyConfig, output_dir
 from lerobot_jept.study.plan import checkpoint, run_folder, slug
@@ -357,9 +358,61 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         + " | ".join("-" if f is None else str(f) for f in floors)
         + f" | {fmt(floor_mean, math.nan, math.nan)} | | |"
     )
-    lines += ["", "![video-only tasks, every split](video_only.png)"]
+    pair_lines, pairs = per_pair(summary, [task for _, task in cases], floors, episodes)
+    lines += ["", "![video-only tasks, every split](video_only.png)", *pair_lines]
     plot_video_only(summary, floor_mean, out / "video_only.png", episodes)
-    return lines + [""], {"episodes": episodes, "cases": header, "methods": summary, "floor": floors}
+    return lines + [""], {
+        "episodes": episodes,
+        "cases": header,
+        "methods": summary,
+        "floor": floors,
+        "pairs": pairs,
+    }
+
+
+def per_pair(
+    summary: dict, tasks: list[str], floors: list, episodes: int
+) -> tuple[list[str], dict[str, dict]]:
+    """The video-only cases grouped by scene (a pair's two directions, from two splits): per method, the mean
+    success over the pair's cases per training seed and its mean [95% t] over the seeds that finished them.
+    Empty when no scene has more than one case."""
+    scenes: dict[str, list[int]] = {}
+    for i, task in enumerate(tasks):
+        scenes.setdefault(scene_key(task), []).append(i)
+    scenes = {scene: rows for scene, rows in scenes.items() if len(rows) > 1}
+    if not scenes:
+        return [], {}
+    pairs: dict[str, dict] = {}
+    lines = [
+        "",
+        "### Per scene pair",
+        "",
+        f"Both directions of each pair together: success % over the pair's cases ({episodes} episodes each), "
+        "mean [95% t interval] over the training seeds that finished them.",
+        "",
+        "| method | " + " | ".join(scenes) + " |",
+        "|---|" + "---|" * len(scenes),
+    ]
+    for name, s in summary.items():
+        cells = []
+        for scene, rows in scenes.items():
+            values = [
+                100.0 * float(np.mean([row[i] for i in rows])) / episodes
+                for row in s["counts"].values()
+                if None not in (row[i] for i in rows)
+            ]
+            mean, low, high = interval(values)
+            pairs.setdefault(scene, {})[name] = {"seed_means": values, "mean": mean, "low": low, "high": high}
+            cells.append(fmt(mean, max(low, 0.0), min(high, 100.0)))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    cells = []
+    for scene, rows in scenes.items():
+        known = [floors[i] for i in rows]
+        mean = math.nan if None in known else 100.0 * float(np.mean(known)) / episodes
+        pairs[scene]["random 7-bin (floor)"] = {"mean": mean}
+        cells.append(fmt(mean, math.nan, math.nan))
+    lines.append("| random 7-bin (floor) | " + " | ".join(cells) + " |")
+    return lines, pairs
 
 
 def plot_video_only(summary: dict, floor_mean: float, path: Path, episodes: int) -> None:

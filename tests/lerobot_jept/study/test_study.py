@@ -444,6 +444,7 @@ def test_preregistered_test_reads_each_case_over_training_seeds(tmp_path):
     assert verdict["holds"] and "The hypothesis **holds**" in report
     assert "![the test's cases](test.png)" in report and (out / "test.png").stat().st_size > 10_000
     assert "| s | b | 60 / 70 / 80 | 10 / 0 / 20 | +60.0 | 20.0 | yes |" in report
+    assert "Per scene pair" not in report  # b and d share no scene
 
     strict = dataclasses.replace(cfg, test=PreRegisteredTest(method="R", baseline="R0", min_cases=2))
     write_report(strict)
@@ -458,7 +459,9 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
     mean and interval come from seeds 1 and 2 only. Welch's p is against the first method, over seeds."""
     from scipy import stats
 
-    splits = [SplitSpec("s1", "test/x", ["a"], ["b"], []), SplitSpec("s2", "test/y", ["b"], ["a"], [])]
+    # one scene pair (x-open / x-close), each direction the video-only task of one split
+    a, b = "x-open", "x-close"
+    splits = [SplitSpec("s1", "test/x", [a], [b], []), SplitSpec("s2", "test/y", [b], [a], [])]
     jept = str(CONFIGS / "train_jept_small_cpu.json")
     cfg = study(
         tmp_path,
@@ -491,7 +494,7 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
         )
     report = write_report(cfg).read_text()
     summary = json.loads((out / "video_only.json").read_text())
-    assert summary["episodes"] == 10 and summary["cases"] == ["b (s1)", "a (s2)"]
+    assert summary["episodes"] == 10 and summary["cases"] == ["x-close (s1)", "x-open (s2)"]
     r, r0 = summary["methods"]["R"], summary["methods"]["R0"]
     assert r["seed_means"] == {"1": 30.0, "2": 40.0, "3": 65.0} and r["mean"] == pytest.approx(45.0)
     assert r0["seed_means"] == {"1": 5.0, "2": 15.0} and r0["counts"]["3"] == [2, None]
@@ -501,6 +504,11 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
     assert "| R0 | 1 / 0 / 2 | 0 / 3 / - | 10.0 [0.0, 73.5] | 5.0, 15.0 |" in report
     assert "| random 7-bin (floor) | 3 | 1 | 20.0 | | |" in report
     assert (out / "video_only.png").stat().st_size > 10_000
+    # per scene pair: both directions per seed (R0's seed 3 lacks one, so only seeds 1 and 2 count)
+    pair = summary["pairs"]["x"]
+    assert pair["R"]["seed_means"] == [30.0, 40.0, 65.0] and pair["R0"]["seed_means"] == [5.0, 15.0]
+    assert "### Per scene pair" in report and "| method | x |" in report
+    assert "| R0 | 10.0 [0.0, 73.5] |" in report and "| random 7-bin (floor) | 20.0 |" in report
 
 
 @pytest.mark.slow
