@@ -91,7 +91,7 @@ def rollout_play(
     succeed at: the episode goes on when the scene's task happens to succeed, and every episode is kept."""
     low, high = float(env.action_space.low.min()), float(env.action_space.high.max())
     rng = np.random.default_rng([seed, RANDOM_ACTION_STREAM])
-    act = (RandomPlay if policy == "random" else ReachPlay)(rng, action_bins, low, high)
+    act = PLAYERS[policy](rng, action_bins, low, high)
     obs, _ = env.reset(seed=seed)
     frames = []
     while True:
@@ -138,6 +138,9 @@ class ReachPlay:
         self.left -= 1
         move = np.clip(self.gain * (self.target - hand), -1.0, 1.0)
         return snap_to_bins(np.append(move, self.grip), self.bins, self.low, self.high).astype(np.float32)
+
+
+PLAYERS = {"random": RandomPlay, "reach": ReachPlay}  # PLAY_POLICIES' actors
 
 
 def record_shard(sim: Simulator, cfg: BuildConfig, shard: Shard, progress) -> dict:
