@@ -10,18 +10,26 @@ class PolicyArg:
     device: str | None = None
     # jept: the classifier-free guidance weight (default: the checkpoint's)
     prompt_guidance: float | None = None
+    # every policy type: how control decodes the bin logits and smooths the actions (default: the checkpoint's)
+    action_decoding: str | None = None
+    action_smoothing: float | None = None
 
     def apply(self, policy_cfg) -> None:
         """The overrides given on the command line, onto the checkpoint's config."""
         if self.device:
             policy_cfg.device = self.device
-        if self.prompt_guidance is not None:
-            if "prompt_guidance" not in {f.name for f in dataclasses.fields(policy_cfg) if f.init}:
-                raise ValueError(
-                    f"--policy.prompt_guidance is a jept option; {self.path} is a {policy_cfg.type} checkpoint."
-                )
-            policy_cfg.prompt_guidance = self.prompt_guidance
-            policy_cfg.__post_init__()  # the config's checks: guidance needs a prompt warm-up or prompt dropout
+        own = {f.name for f in dataclasses.fields(policy_cfg) if f.init}
+        overrides = {
+            name: getattr(self, name)
+            for name in ("prompt_guidance", "action_decoding", "action_smoothing")
+            if getattr(self, name) is not None
+        }
+        for name, value in overrides.items():
+            if name not in own:
+                raise ValueError(f"--policy.{name} is a jept option; {self.path} is a {policy_cfg.type} checkpoint.")
+            setattr(policy_cfg, name, value)
+        if overrides:
+            policy_cfg.__post_init__()  # the config's checks (guidance needs a prompt warm-up or prompt dropout)
 
 
 @dataclass

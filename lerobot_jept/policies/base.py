@@ -366,6 +366,20 @@ class DiscreteActionPolicy(PreTrainedPolicy):
             ..., 0
         ]
 
+    def control_actions(self, logits: Tensor) -> Tensor:
+        """(B, A, bins) logits of a_t -> the (B, A) actions to execute, decoded as ``action_decoding`` says (the
+        most likely bin's centre, or the mean of the centres under the softmax) and, with ``action_smoothing``
+        b, mixed with the episode's previous action: (1 - b) a_t + b a_{t-1}."""
+        cfg = self.config
+        if cfg.action_decoding == "expectation":
+            action = (logits.float().softmax(-1) * self.bin_centres).sum(-1)
+        else:
+            action = self.bin_actions(logits.argmax(-1))
+        if cfg.action_smoothing and self._last_action is not None:
+            action = (1.0 - cfg.action_smoothing) * action + cfg.action_smoothing * self._last_action
+        self._last_action = action
+        return action
+
     def lr_groups(self, groups: list[tuple[str, float, list[nn.Module]]]) -> list[dict]:
         """AdamW parameter groups ``[(name, lr, modules), ...]`` of the trainable parameters; a parameter shared
         by two modules (Vid2Robot's one Perceiver) goes to the first group that names it. The groups' rates are
@@ -535,6 +549,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         self._frames: deque[tuple[Tensor, Tensor]] = deque(maxlen=self.config.n_obs_steps)
         self._prompt_cache: Tensor | None = None
         self._prompt_cached = False
+        self._last_action: Tensor | None = None
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
@@ -625,11 +640,10 @@ class ContextActionPolicy(DiscreteActionPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """(B, action_dim) bin-centre actions for the current observation."""
+        """(B, action_dim) actions for the current observation (see ``control_actions``)."""
         prompt = self.episode_prompt(batch)
         obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])
-        logits = self.model.action_logits(prompt, obs)[:, -1]
-        return self.bin_actions(logits.argmax(-1))
+        return self.control_actions(self.model.action_logits(prompt, obs)[:, -1])
 
 
 def frame_mean(values: Tensor, frame_ok: Tensor) -> Tensor:

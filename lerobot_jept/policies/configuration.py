@@ -30,6 +30,7 @@ from lerobot_jept.registration import register_processor_steps
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 ACTION_RANGES = ("fixed", "dataset")
+ACTION_DECODINGS = ("argmax", "expectation")
 IDM_INPUTS = ("embedding", "self_state")  # what an inverse dynamics reads: frame tokens, or the self-state
 RETIRED = "retired"  # metadata key of a field kept only to read old checkpoints
 
@@ -110,6 +111,12 @@ class VideoPolicyConfig(PreTrainedConfig):
             ``action_highs`` and saved with the checkpoint (or given directly).
         action_dim: action size; taken from the dataset's ``action`` feature, needed only for datasets without
             one (expert videos alone).
+        action_decoding: how control turns each dimension's bin logits into an action, not in the paper.
+            ``"argmax"`` (default, the paper): the most likely bin's centre. ``"expectation"``: the mean of the
+            bin centres under the softmax of the logits, a continuous action between neighbouring bins.
+        action_smoothing: not in the paper; in control, each action becomes ``(1 - b) a_t + b a_{t-1}`` with
+            ``a_{t-1}`` the previous executed (smoothed) action of the episode, ``b`` this value in [0, 1)
+            (0, the default: off).
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
@@ -196,6 +203,8 @@ class VideoPolicyConfig(PreTrainedConfig):
     action_lows: list[float] | None = None
     action_highs: list[float] | None = None
     action_dim: int | None = None
+    action_decoding: str = "argmax"
+    action_smoothing: float = 0.0
 
     optimizer_lr_encoder: float = 3e-5
     optimizer_lr_prompt: float = 7e-5
@@ -238,6 +247,15 @@ class VideoPolicyConfig(PreTrainedConfig):
         if not self.action_low < self.action_high:
             raise ValueError(
                 f"action_low ({self.action_low}) must be below action_high ({self.action_high})."
+            )
+        if self.action_decoding not in ACTION_DECODINGS:
+            raise ValueError(
+                f"action_decoding must be one of {ACTION_DECODINGS}, got {self.action_decoding!r}: pass "
+                "--policy.action_decoding=argmax (the most likely bin) or expectation (the mean over the bins)."
+            )
+        if not 0.0 <= self.action_smoothing < 1.0:
+            raise ValueError(
+                f"action_smoothing must be in [0, 1) (the previous action's weight), got {self.action_smoothing}."
             )
         if self.action_range not in ACTION_RANGES:
             raise ValueError(f"action_range must be one of {ACTION_RANGES}, got {self.action_range!r}.")

@@ -342,14 +342,14 @@ class JEPTPolicy(DiscreteActionPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """(B, action_dim) bin-centre actions for the current observation."""
+        """(B, action_dim) actions for the current observation (see ``control_actions``)."""
         m = self.model
         prompt = self.episode_prompt(batch, self.prompt_active)
         obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D)
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
         recent = list(self._frames)[-(self.config.idm_history + 1) :]  # what the inverse dynamics reads
         states = torch.stack([state for _, state in recent], 1)  # s_{t-h} .. s_t
-        return self.bin_actions(self._control_logits(prompt, obs, h_past, states).argmax(-1))
+        return self.control_actions(self._control_logits(prompt, obs, h_past, states))
 
     def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, states: Tensor) -> Tensor:
         """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and the

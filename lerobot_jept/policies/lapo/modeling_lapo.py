@@ -145,8 +145,8 @@ class LAPOPolicy(DiscreteActionPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """(B, action_dim) bin-centre actions for the current observation."""
+        """(B, action_dim) actions for the current observation (see ``control_actions``)."""
         prompt = self.episode_prompt(batch)
         obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])
         logits = self.model.decode(self.model.latent_logits(prompt, obs)[:, -1], batch[OBS_STATE])
-        return self.bin_actions(logits.argmax(-1))
+        return self.control_actions(logits)

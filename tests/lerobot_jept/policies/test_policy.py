@@ -668,3 +668,46 @@ def test_logged_learning_rates_name_their_groups_and_follow_the_optimizer(tiny_b
         scheduler.step()
         policy.update()
     assert info["lr_encoder"] == pytest.approx(cfg.optimizer_lr_encoder)  # past the warm-up
+
+
+def test_action_decoding_and_smoothing_in_control(tiny_build):
+    """action_decoding=expectation executes the mean of the bin centres under the softmax of the logits that
+    offline_outputs' control gives (between neighbouring centres, not only on them); action_smoothing b mixes
+    each action with the episode's previous one, and reset() forgets it. Unknown or out-of-range values are
+    refused with the flag to pass."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    policy, pre, _ = build_policy(tiny_build, idm_input="self_state", action_decoding="expectation")
+    overfit(policy, pre, steps=10)
+    policy.eval()
+    k = policy.config.n_obs_steps
+    ds = load(MIX, delta_timestamps=resolve_delta_timestamps(policy.config, LeRobotDatasetMetadata(MIX)))
+    start = ds.meta.episodes[0]["dataset_from_index"]
+    windows = [pre(torch.utils.data.default_collate([ds[start + k - 1 + i]])) for i in range(2)]
+    expected = [
+        (policy.offline_outputs(w)["control"].softmax(-1) * policy.bin_centres).sum(-1) for w in windows
+    ]
+
+    def episode(b: float) -> list[torch.Tensor]:
+        policy.config.action_smoothing = b
+        policy.reset()
+        actions = []
+        for i in range(k + 1):  # the context of the first window, then the next frame (the second window's last)
+            w, j = (windows[0], i) if i < k else (windows[1], k - 1)
+            obs = {key: w[key][:, j] for key in ("observation.image", "observation.state")}
+            actions.append(policy.select_action({**obs, PROMPT_VIDEO: w[PROMPT_VIDEO]}))
+        return actions[-2:]
+
+    plain = episode(0.0)
+    for got, want in zip(plain, expected, strict=True):
+        torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)  # cached and full passes round apart
+    centres = policy.bin_centres
+    assert ((plain[0][..., None] - centres).abs().min(-1).values > 1e-4).any()  # not only bin centres
+    smoothed = episode(0.5)
+    torch.testing.assert_close(smoothed[1], 0.5 * plain[1] + 0.5 * smoothed[0])
+    assert not torch.allclose(smoothed[1], plain[1])
+
+    with pytest.raises(ValueError, match="--policy.action_decoding=argmax"):
+        tiny_config(action_decoding="mean")
+    with pytest.raises(ValueError, match=r"action_smoothing must be in \[0, 1\)"):
+        tiny_config(action_smoothing=1.0)
