@@ -26,7 +26,9 @@ class PolicyArg:
         }
         for name, value in overrides.items():
             if name not in own:
-                raise ValueError(f"--policy.{name} is a jept option; {self.path} is a {policy_cfg.type} checkpoint.")
+                raise ValueError(
+                    f"--policy.{name} is a jept option; {self.path} is a {policy_cfg.type} checkpoint."
+                )
             setattr(policy_cfg, name, value)
         if overrides:
             policy_cfg.__post_init__()  # the config's checks (guidance needs a prompt warm-up or prompt dropout)

@@ -36,7 +36,9 @@ class MethodSpec:
     plus ``_play`` when the build has play episodes) or ``bc_idm`` (a ``jept_idm`` from ``idm_config`` on the
     labelled frames, ``jept-relabel`` of ``_mix``, then ``config``, a ``jept_dt_star`` config, on the relabelled
     repo). ``args``: ``lerobot-train`` flags of this method (a ``jept`` variant is ``jept`` with overrides).
-    ``eval_episodes`` (default: the study's) and ``suite_args`` (added to the study's) set its evaluation."""
+    ``eval_episodes`` (default: the study's) and ``suite_args`` (added to the study's) set its evaluation.
+    ``checkpoints_of``: the name of an earlier method of the study whose checkpoints this one evaluates, with its
+    own ``suite_args`` (a control setting, e.g. ``--policy.action_decoding=expectation``); nothing is trained."""
 
     name: str = "JEPT"
     kind: str = "train"
@@ -47,6 +49,7 @@ class MethodSpec:
     idm_args: list[str] = field(default_factory=list)
     eval_episodes: int | None = None
     suite_args: list[str] = field(default_factory=list)
+    checkpoints_of: str = ""
 
 
 @dataclass
@@ -128,6 +131,13 @@ def validate(cfg: StudyConfig) -> None:
                     "the folder jept-study runs in)."
                 )
     names = [m.name for m in cfg.methods]
+    for i, m in enumerate(cfg.methods):
+        trained = [t.name for t in cfg.methods[:i] if not t.checkpoints_of]
+        if m.checkpoints_of and m.checkpoints_of not in trained:
+            raise StudyError(
+                f"Method {m.name!r} evaluates the checkpoints of {m.checkpoints_of!r}, which must be a method "
+                f"listed before it that trains (one of {trained})."
+            )
     if cfg.test is not None and not {cfg.test.method, cfg.test.baseline} <= set(names):
         raise StudyError(
             f"The test compares {cfg.test.method!r} with {cfg.test.baseline!r}; both must be methods of the study "

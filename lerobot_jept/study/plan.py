@@ -22,6 +22,9 @@ class Step:
     prepare: Callable[[], list[str] | None] | None = None  # before running: may replace the command (resume)
     always: bool = False  # re-run every time (cheap summaries)
 
+    # The run (split, method, seed) whose steps this one follows, when its key does not name it (an evaluation of
+    # another method's checkpoints)
+    run: tuple[str, ...] | None = None
     signature: list[str] | None = None  # what the marker must record (default: the command)
     # A marker that records more than the signature after it still counts (figures drawn with a baseline beside)
     prefix: bool = False
@@ -181,7 +184,12 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 folder = run_folder(out, split, method, seed)
                 key = f"{split.name}/{method.name}/seed{seed}"
                 prompts = f"{split.repo_id}_prompts"
-                if method.kind == "bc_idm":
+                trained_in, run = folder, None
+                if method.checkpoints_of:  # another method's checkpoints, after that method's own steps
+                    source = next(m for m in cfg.methods if m.name == method.checkpoints_of)
+                    trained_in = run_folder(out, split, source, seed)
+                    run = (split.name, source.name, f"seed{seed}")
+                elif method.kind == "bc_idm":
                     idm = folder / "idm"
                     demo = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
                     steps.append(
@@ -212,13 +220,16 @@ def plan(cfg: StudyConfig) -> list[Step]:
                     data = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
                 else:
                     data = [f"--dataset.repo_id={split.repo_id}_{method.data}"]
-                steps.append(
-                    train_step(cfg, f"{key}/train", folder, method.config, data, seed, method.args, prompts)
-                )
+                if not method.checkpoints_of:
+                    steps.append(
+                        train_step(
+                            cfg, f"{key}/train", folder, method.config, data, seed, method.args, prompts
+                        )
+                    )
                 episodes = method.eval_episodes or cfg.eval_episodes
                 suite = [
                     bin_path("jept-eval-suite"),
-                    f"--policy.path={checkpoint(folder)}",
+                    f"--policy.path={checkpoint(trained_in)}",
                     f"--policy.device={cfg.device}",
                     f"--dataset.repo_id={split.repo_id}_mix",
                     f"--n_episodes={episodes}",
@@ -229,7 +240,7 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 if cfg.eval_episode_length:
                     suite.append(f"--episode_length={cfg.eval_episode_length}")
                 suite += [*cfg.suite_args, *method.suite_args]
-                steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite))
+                steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite, run=run))
         steps += visualize_steps(cfg, split, split_dir)
         runs = {m.name: [run_folder(out, split, m, s) / "suite" for s in cfg.seeds] for m in cfg.methods}
         if cfg.report_only:  # the runs that have evaluated
@@ -261,8 +272,9 @@ def policy_type(method: MethodSpec) -> str:
 def visualize_steps(cfg: StudyConfig, split: SplitSpec, split_dir: Path) -> list[Step]:
     """``jept-visualize`` of the first JEPT method's first seed against the first other method's, on the probe
     repo (Figures 3 and 5). Drawn once per split, with the seed list's first seed and the methods at that time."""
-    jept = [m for m in cfg.methods if policy_type(m) == "jept"]
-    others = [m for m in cfg.methods if policy_type(m) != "jept"]
+    trained = [m for m in cfg.methods if not m.checkpoints_of]
+    jept = [m for m in trained if policy_type(m) == "jept"]
+    others = [m for m in trained if policy_type(m) != "jept"]
     if not jept:
         return []
     seed = cfg.seeds[0]

@@ -204,6 +204,8 @@ def run_step(step: Step, progress: StudyProgress, threads: int | None = None) ->
 
 def run_of(step: Step) -> tuple[str, ...] | None:
     """The run (split, method, seed) a step belongs to; None for a split's own steps."""
+    if step.run is not None:
+        return step.run
     parts = step.key.split("/")
     return tuple(parts[:3]) if len(parts) == 4 else None
 

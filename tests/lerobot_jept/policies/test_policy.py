@@ -692,7 +692,9 @@ def test_action_decoding_and_smoothing_in_control(tiny_build):
         policy.config.action_smoothing = b
         policy.reset()
         actions = []
-        for i in range(k + 1):  # the context of the first window, then the next frame (the second window's last)
+        for i in range(
+            k + 1
+        ):  # the context of the first window, then the next frame (the second window's last)
             w, j = (windows[0], i) if i < k else (windows[1], k - 1)
             obs = {key: w[key][:, j] for key in ("observation.image", "observation.state")}
             actions.append(policy.select_action({**obs, PROMPT_VIDEO: w[PROMPT_VIDEO]}))
@@ -711,3 +713,15 @@ def test_action_decoding_and_smoothing_in_control(tiny_build):
         tiny_config(action_decoding="mean")
     with pytest.raises(ValueError, match=r"action_smoothing must be in \[0, 1\)"):
         tiny_config(action_smoothing=1.0)
+
+    # the evaluation tools' --policy.action_decoding / --policy.action_smoothing, onto any policy type's checkpoint
+    from lerobot_jept.evaluation.cli_args import PolicyArg
+    from lerobot_jept.policies.dt_star.configuration_dt_star import DTStarConfig
+
+    cfg = tiny_config(DTStarConfig)
+    PolicyArg("ckpt", action_decoding="expectation", action_smoothing=0.3).apply(cfg)
+    assert (cfg.action_decoding, cfg.action_smoothing) == ("expectation", 0.3)
+    with pytest.raises(ValueError, match="--policy.action_decoding=argmax"):
+        PolicyArg("ckpt", action_decoding="mode").apply(cfg)
+    with pytest.raises(ValueError, match="--policy.prompt_guidance is a jept option"):
+        PolicyArg("ckpt", prompt_guidance=1.0).apply(tiny_config(DTStarConfig))

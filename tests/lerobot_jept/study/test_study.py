@@ -115,6 +115,38 @@ def test_play_episodes_join_the_labelled_frames_of_the_no_video_arm(tmp_path):
     assert "s/labelled" not in plain and "--dataset.repo_id=test/x_demo" in plain["s/J0/seed1/train"]
 
 
+def test_a_method_can_evaluate_another_methods_checkpoints_with_its_own_control_flags(tmp_path):
+    """checkpoints_of: no training, the source's checkpoint evaluated with the method's suite_args into its own
+    folder, in the source's run after the source's own evaluation (so after its training, also in parallel);
+    the method is a column of the comparison; the figures draw trained methods only."""
+    decoded = MethodSpec(
+        "JEPT, expectation",
+        checkpoints_of="JEPT",
+        suite_args=["--policy.action_decoding=expectation"],
+    )
+    cfg = study(tmp_path, methods=[*study(tmp_path).methods, decoded])
+    validate(cfg)
+    steps = plan(cfg)
+    keys = [s.key for s in steps]
+    assert "s/JEPT, expectation/seed1/train" not in keys
+    suite = next(s for s in steps if s.key == "s/JEPT, expectation/seed1/suite")
+    source = run_folder(Path(cfg.output_dir), cfg.splits[0], cfg.methods[0], 1)
+    assert f"--policy.path={source / 'train/checkpoints/last/pretrained_model'}" in suite.command
+    assert suite.command[-1] == "--policy.action_decoding=expectation"
+    assert suite.folder == run_folder(Path(cfg.output_dir), cfg.splits[0], decoded, 1)
+    runs = {tuple(s.key for s in run) for group in step_groups(steps) for run in group}
+    assert ("s/JEPT/seed1/train", "s/JEPT/seed1/suite", "s/JEPT, expectation/seed1/suite") in runs
+    compare = json.loads(next(a for a in steps[-1].command if a.startswith("--runs=")).split("=", 1)[1])
+    assert list(compare) == ["JEPT", "BC+IDM", "JEPT, expectation"]
+    assert not any("expectation" in a for a in next(s for s in steps if s.key == "s/visualize").command)
+    for methods in (
+        [decoded, *study(tmp_path).methods],
+        [*study(tmp_path).methods, dataclasses.replace(decoded, checkpoints_of="JEPT, expectation")],
+    ):
+        with pytest.raises(StudyError, match="must be a method listed before it that trains"):
+            validate(study(tmp_path, methods=methods))
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
