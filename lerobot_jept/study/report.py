@@ -287,7 +287,9 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
     """Every method on every split's video-only tasks, read on the episodes all methods ran (the first E env
     seeds, E the smallest ``eval_episodes`` among them, so that every column sees the same episodes): successes
     per case and training seed, the mean over cases per seed, its mean [95% t] over the seeds that finished every
-    case, and Welch's p over those seeds against the first method. Exploratory beside the pre-registered test."""
+    case, and the p over those seeds against the first method: paired t for a method that evaluates the first
+    method's checkpoints (``checkpoints_of``: the same checkpoints under another control setting), else Welch's.
+    Exploratory beside the pre-registered test."""
     from scipy import stats
 
     out = output_dir(cfg)
@@ -315,14 +317,16 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         "",
         f"Successes of {episodes} per training seed ({', '.join(map(str, cfg.seeds))}; env seeds from "
         f"{cfg.eval_seed}, the episodes every method ran), and the mean over the cases per seed: mean [95% t "
-        f"interval] over the seeds that finished every case, Welch's p over seeds against {first}. Exploratory: "
-        "not the study's pre-registered test.",
+        f"interval] over the seeds that finished every case, Welch's p over seeds against {first} (paired t, "
+        "marked *, for a method evaluating its checkpoints under another control setting). Exploratory: not the "
+        "study's pre-registered test.",
         "",
         "| method | " + " | ".join(header) + " | mean % | per seed | p vs first |",
         "|---|" + "---|" * (len(header) + 3),
     ]
     reference = list(summary[first]["seed_means"].values())
-    for name, s in summary.items():
+    for method in cfg.methods:
+        name, s = method.name, summary[method.name]
         cells = [
             " / ".join(
                 "-" if s["counts"][seed][i] is None else str(s["counts"][seed][i]) for seed in cfg.seeds
@@ -332,18 +336,22 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         values = list(s["seed_means"].values())
         mean, low, high = interval(values)
         low, high = max(low, 0.0), min(high, 100.0)  # NaN (one seed) stays NaN
-        p = (
-            float(stats.ttest_ind(values, reference, equal_var=False).pvalue)
-            if name != first and len(values) > 1 and len(reference) > 1
-            else math.nan
-        )
-        s.update(mean=mean, low=low, high=high, p_vs_first=p)
+        paired = method.checkpoints_of == first
+        if paired:  # the same checkpoints: each seed's difference, over the seeds both finished
+            both = [seed for seed in s["seed_means"] if seed in summary[first]["seed_means"]]
+            pairs = [(s["seed_means"][seed], summary[first]["seed_means"][seed]) for seed in both]
+            p = float(stats.ttest_rel(*zip(*pairs, strict=True)).pvalue) if len(pairs) > 1 else math.nan
+        elif name != first and len(values) > 1 and len(reference) > 1:
+            p = float(stats.ttest_ind(values, reference, equal_var=False).pvalue)
+        else:
+            p = math.nan
+        s.update(mean=mean, low=low, high=high, p_vs_first=p, paired=paired)
         per_seed = ", ".join(f"{v:.1f}" for v in values) or "-"
         lines.append(
             f"| {name} | "
             + " | ".join(cells)
             + f" | {fmt(mean, low, high)} | {per_seed} | "
-            + ("-" if p != p else f"{p:.2f}")
+            + ("-" if p != p else f"{p:.2f}" + "*" * paired)
             + " |"
         )
     floors = []

@@ -501,12 +501,17 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
         methods=[
             MethodSpec("R", config=jept, eval_episodes=20),
             MethodSpec("R0", config=jept, data="labelled"),
+            MethodSpec("R, decoded", checkpoints_of="R"),
         ],
         seeds=[1, 2, 3],
     )
     out = Path(cfg.output_dir)
     # successes in the first ten episodes per (split, seed); R also succeeds in all of its last ten
-    hits = {"R": {"s1": [4, 6, 8], "s2": [2, 2, 5]}, "R0": {"s1": [1, 0, 2], "s2": [0, 3, None]}}
+    hits = {
+        "R": {"s1": [4, 6, 8], "s2": [2, 2, 5]},
+        "R0": {"s1": [1, 0, 2], "s2": [0, 3, None]},
+        "R, decoded": {"s1": [5, 7, 9], "s2": [3, 3, 5]},
+    }
     for method in cfg.methods:
         episodes = method.eval_episodes or cfg.eval_episodes
         for split in splits:
@@ -532,6 +537,12 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
     assert r0["seed_means"] == {"1": 5.0, "2": 15.0} and r0["counts"]["3"] == [2, None]
     expected = stats.ttest_ind([5.0, 15.0], [30.0, 40.0, 65.0], equal_var=False).pvalue
     assert r0["p_vs_first"] == pytest.approx(expected) and r["p_vs_first"] != r["p_vs_first"]  # NaN
+    # R's own checkpoints under another control setting: paired over the seeds (differences 10, 10, 5)
+    decoded = summary["methods"]["R, decoded"]
+    assert decoded["seed_means"] == {"1": 40.0, "2": 50.0, "3": 70.0} and decoded["paired"]
+    expected = stats.ttest_rel([40.0, 50.0, 70.0], [30.0, 40.0, 65.0]).pvalue
+    assert decoded["p_vs_first"] == pytest.approx(expected) and not r0["paired"]
+    assert f"| 40.0, 50.0, 70.0 | {expected:.2f}* |" in report
     assert summary["floor"] == [3, 1]
     assert "| R0 | 1 / 0 / 2 | 0 / 3 / - | 10.0 [0.0, 73.5] | 5.0, 15.0 |" in report
     assert "| random 7-bin (floor) | 3 | 1 | 20.0 | | |" in report
