@@ -131,9 +131,11 @@ def validate(cfg: StudyConfig) -> None:
                     "the folder jept-study runs in)."
                 )
     names = [m.name for m in cfg.methods]
-    for i, m in enumerate(cfg.methods):
-        trained = [t.name for t in cfg.methods[:i] if not t.checkpoints_of]
-        if m.checkpoints_of and m.checkpoints_of not in trained:
+    trained: list[str] = []  # the methods so far that train
+    for m in cfg.methods:
+        if not m.checkpoints_of:
+            trained.append(m.name)
+        elif m.checkpoints_of not in trained:
             raise StudyError(
                 f"Method {m.name!r} evaluates the checkpoints of {m.checkpoints_of!r}, which must be a method "
                 f"listed before it that trains (one of {trained})."

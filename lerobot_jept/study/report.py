@@ -324,7 +324,8 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         "| method | " + " | ".join(header) + " | mean % | per seed | p vs first |",
         "|---|" + "---|" * (len(header) + 3),
     ]
-    reference = list(summary[first]["seed_means"].values())
+    by_seed = summary[first]["seed_means"]
+    reference = list(by_seed.values())
     for method in cfg.methods:
         name, s = method.name, summary[method.name]
         cells = [
@@ -338,9 +339,9 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         low, high = max(low, 0.0), min(high, 100.0)  # NaN (one seed) stays NaN
         paired = method.checkpoints_of == first
         if paired:  # the same checkpoints: each seed's difference, over the seeds both finished
-            both = [seed for seed in s["seed_means"] if seed in summary[first]["seed_means"]]
-            pairs = [(s["seed_means"][seed], summary[first]["seed_means"][seed]) for seed in both]
-            p = float(stats.ttest_rel(*zip(*pairs, strict=True)).pvalue) if len(pairs) > 1 else math.nan
+            both = [seed for seed in s["seed_means"] if seed in by_seed]
+            mine, theirs = [s["seed_means"][k] for k in both], [by_seed[k] for k in both]
+            p = float(stats.ttest_rel(mine, theirs).pvalue) if len(both) > 1 else math.nan
         elif name != first and len(values) > 1 and len(reference) > 1:
             p = float(stats.ttest_ind(values, reference, equal_var=False).pvalue)
         else:
