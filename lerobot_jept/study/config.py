@@ -38,7 +38,11 @@ class MethodSpec:
     repo). ``args``: ``lerobot-train`` flags of this method (a ``jept`` variant is ``jept`` with overrides).
     ``eval_episodes`` (default: the study's) and ``suite_args`` (added to the study's) set its evaluation.
     ``checkpoints_of``: the name of an earlier method of the study whose checkpoints this one evaluates, with its
-    own ``suite_args`` (a control setting, e.g. ``--policy.action_decoding=expectation``); nothing is trained."""
+    own ``suite_args`` (a control setting, e.g. ``--policy.action_decoding=expectation``); nothing is trained.
+    ``steps``: this method's training steps (default: the study's). ``continue_from``: the name of an earlier
+    method that trains; this one resumes each of its runs from that run's last checkpoint (LeRobot's resume, into
+    its own folder, ``args`` added) and trains on to ``steps``, so a longer-training arm pays only the extra
+    steps and shares the shorter arm's first steps exactly."""
 
     name: str = "JEPT"
     kind: str = "train"
@@ -50,6 +54,8 @@ class MethodSpec:
     eval_episodes: int | None = None
     suite_args: list[str] = field(default_factory=list)
     checkpoints_of: str = ""
+    steps: int | None = None
+    continue_from: str = ""
 
 
 @dataclass
@@ -131,15 +137,27 @@ def validate(cfg: StudyConfig) -> None:
                     "the folder jept-study runs in)."
                 )
     names = [m.name for m in cfg.methods]
-    trained: list[str] = []  # the methods so far that train
+    trained: dict[str, MethodSpec] = {}  # the methods so far that train
     for m in cfg.methods:
-        if not m.checkpoints_of:
-            trained.append(m.name)
-        elif m.checkpoints_of not in trained:
+        if m.checkpoints_of and m.checkpoints_of not in trained:
             raise StudyError(
                 f"Method {m.name!r} evaluates the checkpoints of {m.checkpoints_of!r}, which must be a method "
-                f"listed before it that trains (one of {trained})."
+                f"listed before it that trains (one of {list(trained)})."
             )
+        if m.continue_from:
+            source = trained.get(m.continue_from)
+            if source is None or m.checkpoints_of:
+                raise StudyError(
+                    f"Method {m.name!r} continues the training of {m.continue_from!r}, which must be a method "
+                    f"listed before it that trains (one of {list(trained)}); it cannot also take checkpoints_of."
+                )
+            if method_steps(cfg, m) <= method_steps(cfg, source):
+                raise StudyError(
+                    f"Method {m.name!r} continues {m.continue_from!r} past its {method_steps(cfg, source)} steps: "
+                    f'give it "steps" above that (got {method_steps(cfg, m)}).'
+                )
+        if not m.checkpoints_of:
+            trained[m.name] = m
     if cfg.test is not None and not {cfg.test.method, cfg.test.baseline} <= set(names):
         raise StudyError(
             f"The test compares {cfg.test.method!r} with {cfg.test.baseline!r}; both must be methods of the study "
@@ -150,7 +168,7 @@ def validate(cfg: StudyConfig) -> None:
             "The test reads the method's success under the scene-mate's prompt: give its method "
             '"suite_args": ["--scene_mate_prompts=true"].'
         )
-    if cfg.steps < 1 or cfg.eval_episodes < 1:
+    if min(method_steps(cfg, m) for m in cfg.methods) < 1 or cfg.eval_episodes < 1:
         raise StudyError("steps and eval_episodes must be at least 1.")
     if cfg.device not in ("cpu", "cuda", "mps"):
         raise StudyError(f"--device must be cpu, cuda or mps, got {cfg.device!r}.")
@@ -159,3 +177,7 @@ def validate(cfg: StudyConfig) -> None:
 
 
 DATA = ("mix", "demo", "labelled")
+
+
+def method_steps(cfg: StudyConfig, method: MethodSpec) -> int:
+    return method.steps if method.steps is not None else cfg.steps

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from lerobot_jept.study.config import MethodSpec, SplitSpec, StudyConfig, StudyError, output_dir
+from lerobot_jept.study.config import MethodSpec, SplitSpec, StudyConfig, StudyError, method_steps, output_dir
 
 
 @dataclass
@@ -102,22 +102,29 @@ def train_step(
     seed: int,
     extra: list[str],
     prompts: str | None,
+    steps: int,
+    start: Path | None = None,
 ) -> Step:
-    """``lerobot-train`` into ``folder/train``; resumes from its last checkpoint after a kill."""
+    """``lerobot-train`` into ``folder/train``; resumes from its last checkpoint after a kill. With ``start`` (a
+    checkpoint's ``pretrained_model`` of another run), the run begins as LeRobot's resume of that checkpoint, in
+    its own folder, with its training config and ``extra`` on top."""
     out = folder / "train"
-    command = [
-        bin_path("lerobot-train"),
-        f"--config_path={config}",
-        *data,
-        *([f"--policy.prompt_repo_id={prompts}"] if prompts else []),
-        f"--seed={seed}",
-        f"--steps={cfg.steps}",
-        f"--save_freq={min(cfg.save_freq, cfg.steps)}",
-        f"--output_dir={out}",
-        f"--policy.device={cfg.device}",
-        *cfg.train_args,
-        *extra,
-    ]
+    common = [f"--steps={steps}", f"--save_freq={min(cfg.save_freq, steps)}", f"--output_dir={out}"]
+    if start is not None:
+        command = [bin_path("lerobot-train"), f"--config_path={start / 'train_config.json'}", "--resume=true"]
+        command += [*common, *extra]
+    else:
+        command = [
+            bin_path("lerobot-train"),
+            f"--config_path={config}",
+            *data,
+            *([f"--policy.prompt_repo_id={prompts}"] if prompts else []),
+            f"--seed={seed}",
+            *common,
+            f"--policy.device={cfg.device}",
+            *cfg.train_args,
+            *extra,
+        ]
 
     def prepare() -> list[str] | None:
         last = out / "checkpoints/last/pretrained_model/train_config.json"
@@ -184,17 +191,30 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 folder = run_folder(out, split, method, seed)
                 key = f"{split.name}/{method.name}/seed{seed}"
                 prompts = f"{split.repo_id}_prompts"
-                trained_in, run = folder, None
-                if method.checkpoints_of:  # another method's checkpoints, after that method's own steps
-                    source = next(m for m in cfg.methods if m.name == method.checkpoints_of)
-                    trained_in = run_folder(out, split, source, seed)
+                trained_in, run, start = folder, None, None
+                steps_of = method_steps(cfg, method)
+                if method.checkpoints_of or method.continue_from:  # after the other method's own steps
+                    other = method.checkpoints_of or method.continue_from
+                    source = next(m for m in cfg.methods if m.name == other)
                     run = (split.name, source.name, f"seed{seed}")
-                elif method.kind == "bc_idm":
+                    if method.checkpoints_of:  # its checkpoints
+                        trained_in = run_folder(out, split, source, seed)
+                    else:  # trained on from its last checkpoint
+                        start = checkpoint(run_folder(out, split, source, seed))
+                if method.kind == "bc_idm" and not (method.checkpoints_of or method.continue_from):
                     idm = folder / "idm"
                     demo = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
                     steps.append(
                         train_step(
-                            cfg, f"{key}/idm", idm, method.idm_config, demo, seed, method.idm_args, None
+                            cfg,
+                            f"{key}/idm",
+                            idm,
+                            method.idm_config,
+                            demo,
+                            seed,
+                            method.idm_args,
+                            None,
+                            steps_of,
                         )
                     )
                     relabelled = f"{split.repo_id}_mix_idm"
@@ -221,11 +241,20 @@ def plan(cfg: StudyConfig) -> list[Step]:
                 else:
                     data = [f"--dataset.repo_id={split.repo_id}_{method.data}"]
                 if not method.checkpoints_of:
-                    steps.append(
-                        train_step(
-                            cfg, f"{key}/train", folder, method.config, data, seed, method.args, prompts
-                        )
+                    train = train_step(
+                        cfg,
+                        f"{key}/train",
+                        folder,
+                        method.config,
+                        data,
+                        seed,
+                        method.args,
+                        prompts,
+                        steps_of,
+                        start,
                     )
+                    train.run = run
+                    steps.append(train)
                 episodes = method.eval_episodes or cfg.eval_episodes
                 suite = [
                     bin_path("jept-eval-suite"),

@@ -205,13 +205,16 @@ def write_report(cfg: StudyConfig) -> Path:
     own = [
         f"{m.name} {m.eval_episodes}" for m in cfg.methods if m.eval_episodes not in (None, cfg.eval_episodes)
     ]
+    steps_own = ", ".join(f"{m.name} {m.steps}" for m in cfg.methods if m.steps not in (None, cfg.steps))
+    steps_own = f" ({steps_own})" if steps_own else ""
     episodes = f"{cfg.eval_episodes} evaluation episodes per task and seed" + (
         f" ({', '.join(own)})" if own else ""
     )
     lines = [
         f"# Study `{cfg.name}` ({cfg.simulator})",
         "",
-        f"Methods: {', '.join(m.name for m in cfg.methods)}; training seeds {cfg.seeds}, {cfg.steps} steps each; "
+        f"Methods: {', '.join(m.name for m in cfg.methods)}; training seeds {cfg.seeds}, {cfg.steps} steps each"
+        f"{steps_own}; "
         f"{episodes} (env seeds from {cfg.eval_seed}). Success % "
         "is the mean over training seeds with a 95% Student's t interval over seeds (with one seed: a bootstrap "
         "interval over its evaluation episodes).",

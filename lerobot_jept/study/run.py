@@ -66,9 +66,10 @@ PRIOR_SECONDS = {
 
 
 def cost_key(step: Step) -> tuple[str, ...]:
-    """What a step's cost is estimated from: (method, kind) for a run's steps, (kind,) for a split's."""
-    run, kind = run_of(step), step.key.split("/")[-1]
-    return (run[1], kind) if run else (kind,)
+    """What a step's cost is estimated from: (method, kind) for a run's steps (its own method, also when it runs
+    in another method's run), (kind,) for a split's."""
+    parts = step.key.split("/")
+    return (parts[1], parts[-1]) if run_of(step) else (parts[-1],)
 
 
 def recorded_seconds(step: Step) -> float | None:

@@ -147,6 +147,57 @@ def test_a_method_can_evaluate_another_methods_checkpoints_with_its_own_control_
             validate(study(tmp_path, methods=methods))
 
 
+def test_a_method_can_continue_another_methods_training_to_more_steps(tmp_path):
+    """continue_from: LeRobot's resume of the source's last checkpoint into the method's own folder, to its own
+    steps, with its args on top; in the source's run after the source's evaluation; a kill during it resumes
+    from its own checkpoint. Its training time is estimated from its own finished runs, not the source's."""
+    longer = MethodSpec("JEPT, longer", continue_from="JEPT", steps=30, args=["--log_freq=5"])
+    cfg = study(tmp_path, methods=[*study(tmp_path).methods, longer])
+    validate(cfg)
+    steps = plan(cfg)
+    train = next(s for s in steps if s.key == "s/JEPT, longer/seed1/train")
+    source = run_folder(Path(cfg.output_dir), cfg.splits[0], cfg.methods[0], 1)
+    folder = run_folder(Path(cfg.output_dir), cfg.splits[0], longer, 1)
+    assert train.command[1:] == [
+        f"--config_path={source / 'train/checkpoints/last/pretrained_model/train_config.json'}",
+        "--resume=true",
+        "--steps=30",
+        "--save_freq=30",
+        f"--output_dir={folder / 'train'}",
+        "--log_freq=5",
+    ]
+    suite = next(s for s in steps if s.key == "s/JEPT, longer/seed1/suite")
+    assert f"--policy.path={folder / 'train/checkpoints/last/pretrained_model'}" in suite.command
+    runs = {tuple(s.key for s in run) for group in step_groups(steps) for run in group}
+    assert (
+        "s/JEPT/seed2/train",
+        "s/JEPT/seed2/suite",
+        "s/JEPT, longer/seed2/train",
+        "s/JEPT, longer/seed2/suite",
+    ) in runs
+    own = folder / "train/checkpoints/000020/pretrained_model"
+    own.mkdir(parents=True)
+    (own / "train_config.json").write_text("{}")
+    (folder / "train/checkpoints/last").symlink_to("000020")
+    assert train.prepare() == [
+        train.command[0],
+        f"--config_path={own / 'train_config.json'}",
+        "--resume=true",
+    ]
+    source.mkdir(parents=True)
+    (source / "train.done.json").write_text(json.dumps({"planned": plan(cfg)[2].command, "seconds": 100.0}))
+    (folder / "train.done.json").write_text(json.dumps({"planned": train.command, "seconds": 40.0}))
+    estimates = dict(zip([s.key for s in steps], estimate_seconds(cfg, steps), strict=True))
+    assert estimates["s/JEPT/seed2/train"] == 100.0 and estimates["s/JEPT, longer/seed2/train"] == 40.0
+    assert "(JEPT, longer 30)" in write_report(cfg).read_text()
+    for bad, message in (
+        (dataclasses.replace(longer, steps=10), 'give it "steps" above that'),
+        (dataclasses.replace(longer, continue_from="nope"), "must be a method listed before it that trains"),
+    ):
+        with pytest.raises(StudyError, match=message):
+            validate(study(tmp_path, methods=[*study(tmp_path).methods, bad]))
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
@@ -557,7 +608,8 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
 @pytest.mark.slow
 def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build, tmp_path):
     """The real entry points on the tests' tiny build (its builder re-run is a no-op): JEPT and BC+IDM, one
-    seed, 2 steps, 10-step evaluations. Killed (with its children) during BC+IDM, re-run, then run again."""
+    seed, 2 steps, 10-step evaluations, and JEPT trained on to 4 steps. Killed (with its children) during
+    BC+IDM, re-run, then run again."""
     config = {
         "name": "micro",
         "splits": [
@@ -585,6 +637,7 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
                 "config": str(CONFIGS / "train_dt_star_small_cpu.json"),
                 "idm_config": str(CONFIGS / "train_idm_small_cpu.json"),
             },
+            {"name": "JEPT, longer", "continue_from": "JEPT", "steps": 4},
         ],
         "seeds": [1],
         "steps": 2,
@@ -622,6 +675,13 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
     results = json.loads((out / "BC_IDM/seed1/suite/results.json").read_text())
     assert results["policy_type"] == "jept_dt_star" and results["prompt_probe"]["splits"]
     assert (out / "training_curves.png").stat().st_size > 1000
+    # JEPT, longer: LeRobot's resume of JEPT's step-2 checkpoint, on to step 4 in its own folder
+    longer = out / "JEPT_longer/seed1/train/checkpoints"
+    assert sorted(p.name for p in longer.iterdir()) == ["000004", "last"]
+    assert json.loads((longer / "last/pretrained_model/train_config.json").read_text())["steps"] == 4
+    assert sorted(p.name for p in (out / "JEPT/seed1/train/checkpoints").iterdir()) == ["000002", "last"]
+    assert "step:3 " in (out / "JEPT_longer/seed1/train.log").read_text()
+    assert (out / "JEPT_longer/seed1/suite/results.json").is_file()
     for figure in ("prompt_embeddings.png", "observation_embeddings.png"):  # jept-visualize, JEPT vs DT*
         assert (out / "visualize" / figure).stat().st_size > 1000 and figure in report
 
@@ -632,7 +692,7 @@ def test_micro_study_resumes_after_a_kill_and_a_rerun_trains_nothing(tiny_build,
         text=True,
     )
     assert rerun.returncode == 0, rerun.stderr[-3000:]
-    assert "10 steps, 9 already done" in rerun.stdout  # only jept-compare runs again
+    assert "12 steps, 11 already done" in rerun.stdout  # only jept-compare runs again
     assert "lerobot-train" not in rerun.stdout + rerun.stderr
 
 
