@@ -126,6 +126,14 @@ def validate(cfg: StudyConfig) -> None:
         if len(set(names)) != len(names):
             raise StudyError(f"Two {what}s share a name in {names}: names are folders and columns.")
     for m in cfg.methods:
+        source = next((o for o in cfg.methods if o.name in (m.continue_from, m.checkpoints_of)), None)
+        if source is not None:  # its checkpoints come from the source's config: named so, for the report
+            m.kind, m.config, m.data, m.idm_config = (
+                source.kind,
+                source.config,
+                source.data,
+                source.idm_config,
+            )
         if m.kind not in ("train", "bc_idm") or m.data not in DATA:
             raise StudyError(
                 f"Method {m.name!r}: kind must be train or bc_idm and data one of {DATA} (got {m.kind}, {m.data})."
