@@ -148,149 +148,158 @@ def run_folder(out: Path, split: SplitSpec, method: MethodSpec, seed: int) -> Pa
 
 
 def plan(cfg: StudyConfig) -> list[Step]:
+    """Every split's data first, then the runs of every split (one pool: with ``parallel`` runs at once, no split
+    waits for another's last run), then each split's figures and comparison."""
+    return [
+        *(step for split in cfg.splits for step in data_steps(cfg, split)),
+        *(step for split in cfg.splits for step in run_steps(cfg, split)),
+        *(step for split in cfg.splits for step in summary_steps(cfg, split)),
+    ]
+
+
+def data_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
+    """The split's build, its labelled frames (with play episodes) and its random floor."""
+    split_dir = output_dir(cfg) / slug(split.name)
+    steps = [Step(f"{split.name}/build", f"build {split.repo_id}", split_dir, build_command(cfg, split))]
+    if cfg.build.play_episodes_per_task:
+        steps.append(
+            Step(
+                f"{split.name}/labelled",
+                f"labelled frames {split.repo_id}",
+                split_dir,
+                [
+                    bin_path("jept-mix"),
+                    f"--demo_repo_ids=[{split.repo_id}_demo, {split.repo_id}_play]",
+                    f"--output_repo_id={labelled_repo(cfg, split)}",
+                ],
+                prepare=lambda split=split: shutil.rmtree(
+                    lerobot_home() / labelled_repo(cfg, split), ignore_errors=True
+                ),
+            )
+        )
+    if cfg.random_episodes > 0:
+        steps.append(
+            Step(
+                f"{split.name}/random_floor",
+                f"random floor {split.name}",
+                split_dir,
+                function=lambda split=split: random_floor(cfg, split),
+                signature=[
+                    "random_floor",
+                    f"episodes={cfg.random_episodes}",
+                    f"seed={cfg.eval_seed}",
+                    f"length={cfg.eval_episode_length}",
+                ],
+            )
+        )
+    return steps
+
+
+def run_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
+    """Per seed and method: training (BC+IDM: inverse dynamics, relabelling, behaviour cloning) and evaluation."""
     out = output_dir(cfg)
     steps = []
-    for split in cfg.splits:
-        split_dir = out / slug(split.name)
-        steps.append(
-            Step(f"{split.name}/build", f"build {split.repo_id}", split_dir, build_command(cfg, split))
-        )
-        if cfg.build.play_episodes_per_task:
-            steps.append(
-                Step(
-                    f"{split.name}/labelled",
-                    f"labelled frames {split.repo_id}",
-                    split_dir,
-                    [
-                        bin_path("jept-mix"),
-                        f"--demo_repo_ids=[{split.repo_id}_demo, {split.repo_id}_play]",
-                        f"--output_repo_id={labelled_repo(cfg, split)}",
-                    ],
-                    prepare=lambda split=split: shutil.rmtree(
-                        lerobot_home() / labelled_repo(cfg, split), ignore_errors=True
-                    ),
-                )
-            )
-        if cfg.random_episodes > 0:
-            steps.append(
-                Step(
-                    f"{split.name}/random_floor",
-                    f"random floor {split.name}",
-                    split_dir,
-                    function=lambda split=split: random_floor(cfg, split),
-                    signature=[
-                        "random_floor",
-                        f"episodes={cfg.random_episodes}",
-                        f"seed={cfg.eval_seed}",
-                        f"length={cfg.eval_episode_length}",
-                    ],
-                )
-            )
-        for seed in cfg.seeds:  # seed by seed: a study cut short still compares every method
-            for method in cfg.methods:
-                folder = run_folder(out, split, method, seed)
-                key = f"{split.name}/{method.name}/seed{seed}"
-                prompts = f"{split.repo_id}_prompts"
-                trained_in, run, start = folder, None, None
-                steps_of = method_steps(cfg, method)
-                if method.checkpoints_of or method.continue_from:  # after the other method's own steps
-                    other = method.checkpoints_of or method.continue_from
-                    source = next(m for m in cfg.methods if m.name == other)
-                    run = (split.name, source.name, f"seed{seed}")
-                    if method.checkpoints_of:  # its checkpoints
-                        trained_in = run_folder(out, split, source, seed)
-                    else:  # trained on from its last checkpoint
-                        start = checkpoint(run_folder(out, split, source, seed))
-                if method.kind == "bc_idm" and not (method.checkpoints_of or method.continue_from):
-                    idm = folder / "idm"
-                    demo = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
-                    steps.append(
-                        train_step(
-                            cfg,
-                            f"{key}/idm",
-                            idm,
-                            method.idm_config,
-                            demo,
-                            seed,
-                            method.idm_args,
-                            None,
-                            steps_of,
-                        )
-                    )
-                    relabelled = f"{split.repo_id}_mix_idm"
-                    relabel_root = folder / "relabelled"
-                    steps.append(
-                        Step(
-                            f"{key}/relabel",
-                            f"{key}/relabel",
-                            folder,
-                            [
-                                bin_path("jept-relabel"),
-                                f"--policy.path={checkpoint(idm)}",
-                                f"--dataset.repo_id={split.repo_id}_mix",
-                                f"--output_repo_id={relabelled}",
-                                f"--output_root={relabel_root}",
-                                f"--heldout_repo_id={split.repo_id}_probe",
-                            ],
-                            prepare=lambda root=relabel_root: shutil.rmtree(root, ignore_errors=True),
-                        )
-                    )
-                    data = [f"--dataset.repo_id={relabelled}", f"--dataset.root={relabel_root}"]
-                elif method.data == "labelled":
-                    data = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
-                else:
-                    data = [f"--dataset.repo_id={split.repo_id}_{method.data}"]
-                if not method.checkpoints_of:
-                    train = train_step(
-                        cfg,
-                        f"{key}/train",
+    for seed in cfg.seeds:  # seed by seed: a study cut short still compares every method
+        for method in cfg.methods:
+            folder = run_folder(out, split, method, seed)
+            key = f"{split.name}/{method.name}/seed{seed}"
+            prompts = f"{split.repo_id}_prompts"
+            trained_in, run, start = folder, None, None
+            steps_of = method_steps(cfg, method)
+            if method.checkpoints_of or method.continue_from:  # after the other method's own steps
+                other = method.checkpoints_of or method.continue_from
+                source = next(m for m in cfg.methods if m.name == other)
+                run = (split.name, source.name, f"seed{seed}")
+                if method.checkpoints_of:  # its checkpoints
+                    trained_in = run_folder(out, split, source, seed)
+                else:  # trained on from its last checkpoint
+                    start = checkpoint(run_folder(out, split, source, seed))
+            if method.kind == "bc_idm" and not (method.checkpoints_of or method.continue_from):
+                idm = folder / "idm"
+                demo = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
+                idm_args = (method.idm_config, demo, seed, method.idm_args, None, steps_of)
+                steps.append(train_step(cfg, f"{key}/idm", idm, *idm_args))
+                relabelled = f"{split.repo_id}_mix_idm"
+                relabel_root = folder / "relabelled"
+                steps.append(
+                    Step(
+                        f"{key}/relabel",
+                        f"{key}/relabel",
                         folder,
-                        method.config,
-                        data,
-                        seed,
-                        method.args,
-                        prompts,
-                        steps_of,
-                        start,
+                        [
+                            bin_path("jept-relabel"),
+                            f"--policy.path={checkpoint(idm)}",
+                            f"--dataset.repo_id={split.repo_id}_mix",
+                            f"--output_repo_id={relabelled}",
+                            f"--output_root={relabel_root}",
+                            f"--heldout_repo_id={split.repo_id}_probe",
+                        ],
+                        prepare=lambda root=relabel_root: shutil.rmtree(root, ignore_errors=True),
                     )
-                    train.run = run
-                    steps.append(train)
-                episodes = method.eval_episodes or cfg.eval_episodes
-                suite = [
-                    bin_path("jept-eval-suite"),
-                    f"--policy.path={checkpoint(trained_in)}",
-                    f"--policy.device={cfg.device}",
-                    f"--dataset.repo_id={split.repo_id}_mix",
-                    f"--n_episodes={episodes}",
-                    f"--batch_size={min(cfg.eval_batch_size, episodes)}",
-                    f"--seed={cfg.eval_seed}",
-                    f"--output_dir={folder / 'suite'}",
-                ]
-                if cfg.eval_episode_length:
-                    suite.append(f"--episode_length={cfg.eval_episode_length}")
-                suite += [*cfg.suite_args, *method.suite_args]
-                steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite, run=run))
-        steps += visualize_steps(cfg, split, split_dir)
-        runs = {m.name: [run_folder(out, split, m, s) / "suite" for s in cfg.seeds] for m in cfg.methods}
-        if cfg.report_only:  # the runs that have evaluated
-            runs = {
-                name: [f for f in folders if (f / "results.json").is_file()] for name, folders in runs.items()
-            }
-        runs = {name: [str(f) for f in folders] for name, folders in runs.items() if folders}
-        if runs:  # none in a report of a study whose runs have not evaluated yet
-            steps.append(
-                Step(
-                    f"{split.name}/compare",
-                    f"compare {split.name}",
-                    split_dir,
-                    [
-                        bin_path("jept-compare"),
-                        f"--runs={json.dumps(runs)}",
-                        f"--output_dir={split_dir / 'compare'}",
-                    ],
-                    always=True,
                 )
+                data = [f"--dataset.repo_id={relabelled}", f"--dataset.root={relabel_root}"]
+            elif method.data == "labelled":
+                data = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
+            else:
+                data = [f"--dataset.repo_id={split.repo_id}_{method.data}"]
+            if not method.checkpoints_of:
+                train = train_step(
+                    cfg,
+                    f"{key}/train",
+                    folder,
+                    method.config,
+                    data,
+                    seed,
+                    method.args,
+                    prompts,
+                    steps_of,
+                    start,
+                )
+                train.run = run
+                steps.append(train)
+            episodes = method.eval_episodes or cfg.eval_episodes
+            suite = [
+                bin_path("jept-eval-suite"),
+                f"--policy.path={checkpoint(trained_in)}",
+                f"--policy.device={cfg.device}",
+                f"--dataset.repo_id={split.repo_id}_mix",
+                f"--n_episodes={episodes}",
+                f"--batch_size={min(cfg.eval_batch_size, episodes)}",
+                f"--seed={cfg.eval_seed}",
+                f"--output_dir={folder / 'suite'}",
+            ]
+            if cfg.eval_episode_length:
+                suite.append(f"--episode_length={cfg.eval_episode_length}")
+            suite += [*cfg.suite_args, *method.suite_args]
+            steps.append(Step(f"{key}/suite", f"{key}/eval", folder, suite, run=run))
+    return steps
+
+
+def summary_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
+    """The split's figures and its comparison of every method over the seeds."""
+    out = output_dir(cfg)
+    split_dir = out / slug(split.name)
+    steps = visualize_steps(cfg, split, split_dir)
+    runs = {m.name: [run_folder(out, split, m, s) / "suite" for s in cfg.seeds] for m in cfg.methods}
+    if cfg.report_only:  # the runs that have evaluated
+        runs = {
+            name: [f for f in folders if (f / "results.json").is_file()] for name, folders in runs.items()
+        }
+    runs = {name: [str(f) for f in folders] for name, folders in runs.items() if folders}
+    if runs:  # none in a report of a study whose runs have not evaluated yet
+        steps.append(
+            Step(
+                f"{split.name}/compare",
+                f"compare {split.name}",
+                split_dir,
+                [
+                    bin_path("jept-compare"),
+                    f"--runs={json.dumps(runs)}",
+                    f"--output_dir={split_dir / 'compare'}",
+                ],
+                always=True,
             )
+        )
     return steps
 
 

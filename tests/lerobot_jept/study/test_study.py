@@ -93,6 +93,22 @@ def test_plan_runs_the_real_entry_points_in_order(tmp_path):
     assert list(compare_runs) == ["JEPT", "BC+IDM"] and len(compare_runs["JEPT"]) == 2
 
 
+def test_the_runs_of_every_split_share_one_pool(tmp_path):
+    """Both splits' data first, then every run of both splits in one group (parallel runs never wait for the
+    other split's last run), then each split's figures and comparison."""
+    splits = [SplitSpec("s", "test/x", ["a"], ["b"], []), SplitSpec("t", "test/y", ["b"], ["a"], [])]
+    groups = step_groups(plan(study(tmp_path, splits=splits, random_episodes=3)))
+    keys = [[[step.key for step in run] for run in group] for group in groups]
+    assert keys[:4] == [[["s/build"]], [["s/random_floor"]], [["t/build"]], [["t/random_floor"]]]
+    assert [run[0] for run in keys[4]] == [
+        f"{split}/{method}/seed{seed}/{first}"
+        for split in "st"
+        for seed in (1, 2)
+        for method, first in (("JEPT", "train"), ("BC+IDM", "idm"))
+    ]
+    assert keys[5:] == [[["s/visualize"]], [["s/compare"]], [["t/visualize"]], [["t/compare"]]]
+
+
 def test_play_episodes_join_the_labelled_frames_of_the_no_video_arm(tmp_path):
     """With play episodes, `labelled` data (and BC+IDM's inverse dynamics) train on _demo + _play, mixed once
     per split by jept-mix; without, on _demo."""
