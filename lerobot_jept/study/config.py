@@ -42,7 +42,9 @@ class MethodSpec:
     ``steps``: this method's training steps (default: the study's). ``continue_from``: the name of an earlier
     method that trains; this one resumes each of its runs from that run's last checkpoint (LeRobot's resume, into
     its own folder, ``args`` added) and trains on to ``steps``, so a longer-training arm pays only the extra
-    steps and shares the shorter arm's first steps exactly."""
+    steps and shares the shorter arm's first steps exactly. ``checkpoint``: with ``checkpoints_of``, the
+    training step of the checkpoint evaluated (one the source saved: a multiple of ``save_freq``, or its last
+    step) instead of the last one."""
 
     name: str = "JEPT"
     kind: str = "train"
@@ -56,6 +58,7 @@ class MethodSpec:
     checkpoints_of: str = ""
     steps: int | None = None
     continue_from: str = ""
+    checkpoint: int | None = None
 
 
 @dataclass
@@ -166,6 +169,11 @@ def validate(cfg: StudyConfig) -> None:
                 )
         if not m.checkpoints_of:
             trained[m.name] = m
+        if m.checkpoint is not None and m.checkpoint not in saved_steps(cfg, m.checkpoints_of):
+            raise StudyError(
+                f"Method {m.name!r}: checkpoint {m.checkpoint} is not a step whose checkpoint "
+                f"checkpoints_of ({m.checkpoints_of!r}) saves; one of {saved_steps(cfg, m.checkpoints_of)}."
+            )
     if cfg.test is not None and not {cfg.test.method, cfg.test.baseline} <= set(names):
         raise StudyError(
             f"The test compares {cfg.test.method!r} with {cfg.test.baseline!r}; both must be methods of the study "
@@ -189,3 +197,15 @@ DATA = ("mix", "demo", "labelled")
 
 def method_steps(cfg: StudyConfig, method: MethodSpec) -> int:
     return method.steps if method.steps is not None else cfg.steps
+
+
+def saved_steps(cfg: StudyConfig, name: str) -> list[int]:
+    """The steps at which the runs of method ``name`` save a checkpoint (LeRobot: every ``save_freq`` steps and
+    the last; a continued run from its source's last step on); none for a name that is not a method."""
+    method = next((m for m in cfg.methods if m.name == name), None)
+    if method is None:
+        return []
+    steps, every = method_steps(cfg, method), min(cfg.save_freq, method_steps(cfg, method))
+    source = next((m for m in cfg.methods if m.name == method.continue_from), None)
+    start = method_steps(cfg, source) if source is not None else 0
+    return sorted({*range(every, steps + 1, every), steps} - set(range(start + 1)))

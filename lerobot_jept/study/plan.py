@@ -139,8 +139,13 @@ def train_step(
     return Step(key, key, folder, command, prepare=prepare)
 
 
-def checkpoint(folder: Path) -> Path:
-    return folder / "train/checkpoints/last/pretrained_model"
+def checkpoint(folder: Path, step: int | None = None, total_steps: int = 0) -> Path:
+    """A run's checkpoint: its last, or the one LeRobot saved at ``step`` of ``total_steps``."""
+    if step is None:
+        return folder / "train/checkpoints/last/pretrained_model"
+    from lerobot.common.train_utils import get_step_identifier
+
+    return folder / "train/checkpoints" / get_step_identifier(step, total_steps) / "pretrained_model"
 
 
 def run_folder(out: Path, split: SplitSpec, method: MethodSpec, seed: int) -> Path:
@@ -204,14 +209,16 @@ def run_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
             folder = run_folder(out, split, method, seed)
             key = f"{split.name}/{method.name}/seed{seed}"
             prompts = f"{split.repo_id}_prompts"
-            trained_in, run, start = folder, None, None
+            run, start, evaluated = None, None, checkpoint(folder)
             steps_of = method_steps(cfg, method)
             if method.checkpoints_of or method.continue_from:  # after the other method's own steps
                 other = method.checkpoints_of or method.continue_from
                 source = next(m for m in cfg.methods if m.name == other)
                 run = (split.name, source.name, f"seed{seed}")
                 if method.checkpoints_of:  # its checkpoints
-                    trained_in = run_folder(out, split, source, seed)
+                    evaluated = checkpoint(
+                        run_folder(out, split, source, seed), method.checkpoint, method_steps(cfg, source)
+                    )
                 else:  # trained on from its last checkpoint
                     start = checkpoint(run_folder(out, split, source, seed))
             if method.kind == "bc_idm" and not (method.checkpoints_of or method.continue_from):
@@ -260,7 +267,7 @@ def run_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
             episodes = method.eval_episodes or cfg.eval_episodes
             suite = [
                 bin_path("jept-eval-suite"),
-                f"--policy.path={checkpoint(trained_in)}",
+                f"--policy.path={evaluated}",
                 f"--policy.device={cfg.device}",
                 f"--dataset.repo_id={split.repo_id}_mix",
                 f"--n_episodes={episodes}",

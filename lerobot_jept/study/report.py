@@ -291,7 +291,8 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
     seeds, E the smallest ``eval_episodes`` among them, so that every column sees the same episodes): successes
     per case and training seed, the mean over cases per seed, its mean [95% t] over the seeds that finished every
     case, and the p over those seeds against the first method: paired t for a method that evaluates the first
-    method's checkpoints (``checkpoints_of``: the same checkpoints under another control setting), else Welch's.
+    method's checkpoints (``checkpoints_of``: the same checkpoints under another control setting) or trains its
+    runs on (``continue_from``: the same runs, more steps), else Welch's.
     Exploratory beside the pre-registered test."""
     from scipy import stats
 
@@ -321,7 +322,8 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         f"Successes of {episodes} per training seed ({', '.join(map(str, cfg.seeds))}; env seeds from "
         f"{cfg.eval_seed}, the episodes every method ran), and the mean over the cases per seed: mean [95% t "
         f"interval] over the seeds that finished every case, Welch's p over seeds against {first} (paired t, "
-        "marked *, for a method evaluating its checkpoints under another control setting). Exploratory: not the "
+        "marked *, for a method evaluating its checkpoints under another control setting or training its runs on). "
+        "Exploratory: not the "
         "study's pre-registered test.",
         "",
         "| method | " + " | ".join(header) + " | mean % | per seed | p vs first |",
@@ -340,7 +342,7 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         values = list(s["seed_means"].values())
         mean, low, high = interval(values)
         low, high = max(low, 0.0), min(high, 100.0)  # NaN (one seed) stays NaN
-        paired = method.checkpoints_of == first
+        paired = first in (method.checkpoints_of, method.continue_from)
         if paired:  # the same checkpoints: each seed's difference, over the seeds both finished
             both = [seed for seed in s["seed_means"] if seed in by_seed]
             mine, theirs = [s["seed_means"][k] for k in both], [by_seed[k] for k in both]

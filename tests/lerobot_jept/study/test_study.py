@@ -206,6 +206,16 @@ def test_a_method_can_continue_another_methods_training_to_more_steps(tmp_path):
     estimates = dict(zip([s.key for s in steps], estimate_seconds(cfg, steps), strict=True))
     assert estimates["s/JEPT/seed2/train"] == 100.0 and estimates["s/JEPT, longer/seed2/train"] == 40.0
     assert "(JEPT, longer 30)" in write_report(cfg).read_text()
+    # the continued runs' intermediate checkpoints, evaluated (LeRobot's folder names); steps no run saves refused
+    middle = MethodSpec("JEPT, longer at 20", checkpoints_of="JEPT, longer", checkpoint=20)
+    cfg = study(tmp_path, methods=[*cfg.methods, middle], save_freq=10)
+    validate(cfg)
+    suite = next(s for s in plan(cfg) if s.key == "s/JEPT, longer at 20/seed1/suite")
+    assert f"--policy.path={folder / 'train/checkpoints/000020/pretrained_model'}" in suite.command
+    for step in (10, 25, 40):  # JEPT's step-10 checkpoint is not in the longer run's folder
+        methods = [*cfg.methods[:3], dataclasses.replace(middle, checkpoint=step)]
+        with pytest.raises(StudyError, match=r"one of \[20, 30\]"):
+            validate(dataclasses.replace(cfg, methods=methods))
     for bad, message in (
         (dataclasses.replace(longer, steps=10), 'give it "steps" above that'),
         (dataclasses.replace(longer, continue_from="nope"), "must be a method listed before it that trains"),
@@ -569,6 +579,7 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
             MethodSpec("R", config=jept, eval_episodes=20),
             MethodSpec("R0", config=jept, data="labelled"),
             MethodSpec("R, decoded", checkpoints_of="R"),
+            MethodSpec("R, longer", continue_from="R", steps=20),
         ],
         seeds=[1, 2, 3],
     )
@@ -578,6 +589,7 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
         "R": {"s1": [4, 6, 8], "s2": [2, 2, 5]},
         "R0": {"s1": [1, 0, 2], "s2": [0, 3, None]},
         "R, decoded": {"s1": [5, 7, 9], "s2": [3, 3, 5]},
+        "R, longer": {"s1": [4, 6, 9], "s2": [2, 2, 5]},
     }
     for method in cfg.methods:
         episodes = method.eval_episodes or cfg.eval_episodes
@@ -609,6 +621,10 @@ def test_video_only_summary_reads_every_method_on_the_episodes_all_of_them_ran(t
     assert decoded["seed_means"] == {"1": 40.0, "2": 50.0, "3": 70.0} and decoded["paired"]
     expected = stats.ttest_rel([40.0, 50.0, 70.0], [30.0, 40.0, 65.0]).pvalue
     assert decoded["p_vs_first"] == pytest.approx(expected) and not r0["paired"]
+    longer = summary["methods"]["R, longer"]  # R's runs trained on: paired as well (differences 0, 0, 5)
+    assert longer["paired"] and longer["p_vs_first"] == pytest.approx(
+        stats.ttest_rel([30.0, 40.0, 70.0], [30.0, 40.0, 65.0]).pvalue
+    )
     assert f"| 40.0, 50.0, 70.0 | {expected:.2f}* |" in report
     assert summary["floor"] == [3, 1]
     assert "| R0 | 1 / 0 / 2 | 0 / 3 / - | 10.0 [0.0, 73.5] | 5.0, 15.0 |" in report
