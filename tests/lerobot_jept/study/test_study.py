@@ -195,6 +195,8 @@ def test_a_method_can_continue_another_methods_training_to_more_steps(tmp_path):
     own.mkdir(parents=True)
     (own / "train_config.json").write_text("{}")
     (folder / "train/checkpoints/last").symlink_to("000020")
+    before = dict(zip([s.key for s in steps], estimate_seconds(cfg, steps), strict=True))
+    assert before["s/JEPT, longer/seed1/train"] == pytest.approx(0.9 * 20)  # the prior, per step it adds
     assert train.prepare() == [
         train.command[0],
         f"--config_path={own / 'train_config.json'}",
