@@ -129,14 +129,10 @@ def validate(cfg: StudyConfig) -> None:
         if len(set(names)) != len(names):
             raise StudyError(f"Two {what}s share a name in {names}: names are folders and columns.")
     for m in cfg.methods:
-        source = next((o for o in cfg.methods if o.name in (m.continue_from, m.checkpoints_of)), None)
+        source = source_of(cfg, m)
         if source is not None:  # its checkpoints come from the source's config: named so, for the report
-            m.kind, m.config, m.data, m.idm_config = (
-                source.kind,
-                source.config,
-                source.data,
-                source.idm_config,
-            )
+            for attr in ("kind", "config", "data", "idm_config"):
+                setattr(m, attr, getattr(source, attr))
         if m.kind not in ("train", "bc_idm") or m.data not in DATA:
             raise StudyError(
                 f"Method {m.name!r}: kind must be train or bc_idm and data one of {DATA} (got {m.kind}, {m.data})."
@@ -199,13 +195,27 @@ def method_steps(cfg: StudyConfig, method: MethodSpec) -> int:
     return method.steps if method.steps is not None else cfg.steps
 
 
+def method_named(cfg: StudyConfig, name: str) -> MethodSpec | None:
+    return next((m for m in cfg.methods if m.name == name), None)
+
+
+def source_of(cfg: StudyConfig, method: MethodSpec) -> MethodSpec | None:
+    """The method whose checkpoints this one evaluates or whose runs it trains on; None for one that trains anew."""
+    return method_named(cfg, method.checkpoints_of or method.continue_from)
+
+
+def start_step(cfg: StudyConfig, method: MethodSpec) -> int:
+    """The step a method's runs start from: its source's last step when it continues one, else 0."""
+    source = method_named(cfg, method.continue_from)
+    return method_steps(cfg, source) if source is not None else 0
+
+
 def saved_steps(cfg: StudyConfig, name: str) -> list[int]:
     """The steps at which the runs of method ``name`` save a checkpoint (LeRobot: every ``save_freq`` steps and
     the last; a continued run from its source's last step on); none for a name that is not a method."""
-    method = next((m for m in cfg.methods if m.name == name), None)
+    method = method_named(cfg, name)
     if method is None:
         return []
-    steps, every = method_steps(cfg, method), min(cfg.save_freq, method_steps(cfg, method))
-    source = next((m for m in cfg.methods if m.name == method.continue_from), None)
-    start = method_steps(cfg, source) if source is not None else 0
-    return sorted({*range(every, steps + 1, every), steps} - set(range(start + 1)))
+    steps = method_steps(cfg, method)
+    every = min(cfg.save_freq, steps)
+    return sorted({*range(every, steps + 1, every), steps} - set(range(start_step(cfg, method) + 1)))

@@ -9,7 +9,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from lerobot_jept.study.config import MethodSpec, SplitSpec, StudyConfig, StudyError, method_steps, output_dir
+from lerobot_jept.study.config import (
+    MethodSpec,
+    SplitSpec,
+    StudyConfig,
+    StudyError,
+    method_steps,
+    output_dir,
+    source_of,
+)
 
 
 @dataclass
@@ -211,9 +219,8 @@ def run_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
             prompts = f"{split.repo_id}_prompts"
             run, start, evaluated = None, None, checkpoint(folder)
             steps_of = method_steps(cfg, method)
-            if method.checkpoints_of or method.continue_from:  # after the other method's own steps
-                other = method.checkpoints_of or method.continue_from
-                source = next(m for m in cfg.methods if m.name == other)
+            source = source_of(cfg, method)
+            if source is not None:  # after the other method's own steps
                 run = (split.name, source.name, f"seed{seed}")
                 if method.checkpoints_of:  # its checkpoints
                     evaluated = checkpoint(
@@ -221,7 +228,7 @@ def run_steps(cfg: StudyConfig, split: SplitSpec) -> list[Step]:
                     )
                 else:  # trained on from its last checkpoint
                     start = checkpoint(run_folder(out, split, source, seed))
-            if method.kind == "bc_idm" and not (method.checkpoints_of or method.continue_from):
+            if method.kind == "bc_idm" and source is None:
                 idm = folder / "idm"
                 demo = [f"--dataset.repo_id={labelled_repo(cfg, split)}"]
                 idm_args = (method.idm_config, demo, seed, method.idm_args, None, steps_of)

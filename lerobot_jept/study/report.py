@@ -323,8 +323,7 @@ def video_only_summary(cfg: StudyConfig) -> tuple[list[str], dict]:
         f"{cfg.eval_seed}, the episodes every method ran), and the mean over the cases per seed: mean [95% t "
         f"interval] over the seeds that finished every case, Welch's p over seeds against {first} (paired t, "
         "marked *, for a method evaluating its checkpoints under another control setting or training its runs on). "
-        "Exploratory: not the "
-        "study's pre-registered test.",
+        "Exploratory: not the study's pre-registered test.",
         "",
         "| method | " + " | ".join(header) + " | mean % | per seed | p vs first |",
         "|---|" + "---|" * (len(header) + 3),

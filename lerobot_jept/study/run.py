@@ -45,7 +45,15 @@ import draccus
 import numpy as np
 from tqdm import tqdm
 
-from lerobot_jept.study.config import StudyConfig, StudyError, method_steps, output_dir, validate
+from lerobot_jept.study.config import (
+    StudyConfig,
+    StudyError,
+    method_named,
+    method_steps,
+    output_dir,
+    start_step,
+    validate,
+)
 from lerobot_jept.study.plan import Step, plan
 from lerobot_jept.study.report import write_report
 
@@ -78,16 +86,6 @@ def recorded_seconds(step: Step) -> float | None:
     return json.loads(step.marker.read_text()).get("seconds")
 
 
-def steps_trained(cfg: StudyConfig, name: str) -> int:
-    """The training steps a run of method ``name`` takes: its steps, less its source's when it continues one."""
-    methods = {m.name: m for m in cfg.methods}
-    method = methods.get(name)
-    if method is None:
-        return cfg.steps
-    source = methods.get(method.continue_from)
-    return method_steps(cfg, method) - (method_steps(cfg, source) if source is not None else 0)
-
-
 def estimate_seconds(cfg: StudyConfig, steps: list[Step]) -> list[float]:
     """Each step's seconds: what it took, for a finished one; else the mean of the finished steps of its method
     and kind, else of its kind, else a prior (:data:`PRIOR_SECONDS`)."""
@@ -106,9 +104,14 @@ def estimate_seconds(cfg: StudyConfig, steps: list[Step]) -> list[float]:
             key = cost_key(step)
             known = seen.get(key) or seen.get(key[-1:])
             kind = key[-1]
-            scale = {"train": steps_trained(cfg, key[0]), "idm": steps_trained(cfg, key[0])}
-            scale["suite"] = cfg.eval_episodes * tasks
-            seconds = float(np.mean(known)) if known else PRIOR_SECONDS.get(kind, 10.0) * scale.get(kind, 1)
+            if known:
+                seconds = float(np.mean(known))
+            else:  # per training step (the steps this method's runs train), per episode and task, else per step
+                units = cfg.eval_episodes * tasks if kind == "suite" else 1
+                if kind in ("train", "idm"):
+                    method = method_named(cfg, key[0])
+                    units = method_steps(cfg, method) - start_step(cfg, method) if method else cfg.steps
+                seconds = PRIOR_SECONDS.get(kind, 10.0) * units
         estimates.append(seconds)
     return estimates
 
