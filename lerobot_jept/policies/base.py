@@ -22,6 +22,7 @@ from lerobot_jept.policies.components.backbone import SpatialBackbone
 from lerobot_jept.policies.components.encoders import ObservationTokenizer, PromptVideoEncoder
 from lerobot_jept.policies.components.perceiver import PerceiverIO
 from lerobot_jept.policies.components.predictor import ActionHead, DTStarTransformer, SelfStateInverseDynamics
+from lerobot_jept.policies.components.weight_average import WeightAverage
 from lerobot_jept.policies.configuration import PluginVersionError, VideoPolicyConfig
 from lerobot_jept.policies.discretization import bin_centres
 from lerobot_jept.policies.prompts import PromptBank, load_prompt_video, resize_frames, unit_float
@@ -305,6 +306,8 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         self.model = self.model_class(config)
         if config.compile_model:
             compile_units(self.model, config.compile_mode)
+        if config.weight_ema_decay is not None:
+            self.weight_average = WeightAverage(self.model, config.weight_ema_decay)
         # Optimizer steps taken; persistent so a resumed run continues any step-driven schedule.
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
         config.fit_action_range(kwargs.get("dataset_stats"))
@@ -423,8 +426,18 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         return [self.model.tokenizer] + ([] if self.config.freeze_backbone else [self.model.backbone])
 
     def update(self) -> None:
-        """After every optimizer step: count it."""
+        """After every optimizer step: count it, move the weight average (``weight_ema_decay``)."""
+        if self.config.weight_ema_decay is not None:
+            self.weight_average.update(self.model, int(self.num_updates))
         self.num_updates += 1
+
+    def train(self, mode: bool = True):
+        """Train or eval mode; with ``weight_ema_decay``, eval mode runs on the weight average and train mode on
+        the trained weights (:class:`WeightAverage`)."""
+        super().train(mode)
+        if "weight_average" in self._modules:
+            self.weight_average.use(self.model, averaged=not mode)
+        return self
 
     def action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
         """Bin indices (B, T, A) from the discretised ``action``; IGNORE_INDEX where unlabelled or padded."""

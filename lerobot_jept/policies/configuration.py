@@ -119,6 +119,11 @@ class VideoPolicyConfig(PreTrainedConfig):
             (0, the default: off).
         optimizer_lr_encoder, optimizer_lr_prompt, optimizer_lr_predictor, optimizer_weight_decay,
             optimizer_grad_clip_norm, scheduler_warmup_steps: Table 6 (3e-5, 7e-5, 7e-5, 1e-4, 1.0, 200).
+        weight_ema_decay: not in the paper; an exponential moving average of the trained weights, moved after
+            every optimizer step with decay ``min(weight_ema_decay, (1 + n) / (10 + n))`` at step n, saved beside
+            the weights in the checkpoint and used in eval mode (control, ``lerobot-eval``); train mode, and so
+            a resumed run, continues from the trained weights. 0.998 averages over about the last 500 steps.
+            None (default): off.
         prompt_repo_id, prompt_root: the prompt bank (a LeRobotDataset of prompt videos, e.g. the builder's
             ``ORG/NAME_prompts``) and an optional local root for it. Training draws a random prompt of each
             sample's task from it; control, when neither the env nor the caller gives a prompt, takes the first
@@ -212,6 +217,7 @@ class VideoPolicyConfig(PreTrainedConfig):
     optimizer_weight_decay: float = 1e-4
     optimizer_grad_clip_norm: float = 1.0
     scheduler_warmup_steps: int = 200
+    weight_ema_decay: float | None = None
 
     prompt_repo_id: str | None = None
     prompt_root: str | None = None
@@ -256,6 +262,11 @@ class VideoPolicyConfig(PreTrainedConfig):
         if not 0.0 <= self.action_smoothing < 1.0:
             raise ValueError(
                 f"action_smoothing must be in [0, 1) (the previous action's weight), got {self.action_smoothing}."
+            )
+        if self.weight_ema_decay is not None and not 0.0 < self.weight_ema_decay < 1.0:
+            raise ValueError(
+                f"weight_ema_decay must be in (0, 1) (e.g. 0.998), or None for no weight average; got "
+                f"{self.weight_ema_decay}."
             )
         if self.action_range not in ACTION_RANGES:
             raise ValueError(f"action_range must be one of {ACTION_RANGES}, got {self.action_range!r}.")

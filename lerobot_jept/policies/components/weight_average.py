@@ -1,0 +1,53 @@
+"""An exponential moving average of a network's trained weights, kept beside them (not in the paper).
+
+Training updates the network's own weights; evaluation runs on their average. :class:`WeightAverage` holds the
+average of every trained parameter as buffers, so it is saved in the same ``model.safetensors`` and a resumed run
+continues both exactly. Switching the policy to eval mode exchanges the network's weights with the average, back
+to train mode exchanges them again; the ``swapped`` flag is saved with them, so a checkpoint written in either
+mode loads consistently.
+"""
+
+import torch
+from torch import nn
+
+
+def buffer_name(parameter: str) -> str:
+    return parameter.replace(".", "__")
+
+
+class WeightAverage(nn.Module):
+    """EMA of ``module``'s parameters that require a gradient, with decay ``min(decay, (1 + n) / (10 + n))``
+    at optimizer step ``n`` (counted from 0; the usual warm-up: early steps follow the weights closely)."""
+
+    def __init__(self, module: nn.Module, decay: float):
+        super().__init__()
+        self.decay = decay
+        self.names = [name for name, p in module.named_parameters() if p.requires_grad]
+        for name, p in module.named_parameters():
+            if p.requires_grad:
+                self.register_buffer(buffer_name(name), p.detach().clone())
+        self.register_buffer("swapped", torch.zeros((), dtype=torch.bool))
+
+    def pairs(self, module: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        params = dict(module.named_parameters())
+        return [(params[name], getattr(self, buffer_name(name))) for name in self.names]
+
+    @torch.no_grad()
+    def update(self, module: nn.Module, step: int) -> None:
+        """After optimizer step ``step`` (in train mode): move the average towards ``module``'s weights."""
+        if self.swapped:
+            raise RuntimeError("The weight average is in the network (eval mode): call policy.train() first.")
+        decay = min(self.decay, (1 + step) / (10 + step))
+        for p, average in self.pairs(module):
+            average.lerp_(p.detach(), 1.0 - decay)
+
+    @torch.no_grad()
+    def use(self, module: nn.Module, averaged: bool) -> None:
+        """Put the average (``averaged``) or the trained weights into ``module``; exact both ways."""
+        if bool(self.swapped) == averaged:
+            return
+        for p, average in self.pairs(module):
+            trained = p.detach().clone()
+            p.copy_(average)
+            average.copy_(trained)
+        self.swapped.fill_(averaged)
