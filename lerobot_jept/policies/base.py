@@ -439,6 +439,13 @@ class DiscreteActionPolicy(PreTrainedPolicy):
             self.weight_average.use(self.model, averaged=not mode)
         return self
 
+    def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
+        """LeRobot's saving, with the trained weights under their names in either mode (:class:`WeightAverage`)."""
+        if "weight_average" not in self._modules:
+            return super()._save_pretrained(save_directory, state_dict)
+        with self.weight_average.trained_weights(self.model):
+            return super()._save_pretrained(save_directory, state_dict)
+
     def action_labels(self, batch: dict[str, Tensor], shape: torch.Size) -> Tensor:
         """Bin indices (B, T, A) from the discretised ``action``; IGNORE_INDEX where unlabelled or padded."""
         actions = batch.get(ACTION)

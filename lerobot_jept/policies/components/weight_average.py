@@ -3,9 +3,12 @@
 Training updates the network's own weights; evaluation runs on their average. :class:`WeightAverage` holds the
 average of every trained parameter as buffers, so it is saved in the same ``model.safetensors`` and a resumed run
 continues both exactly. Switching the policy to eval mode exchanges the network's weights with the average, back
-to train mode exchanges them again; the ``swapped`` flag is saved with them, so a checkpoint written in either
-mode loads consistently.
+to train mode exchanges them again. A checkpoint always holds the trained weights under their own names and the
+average under ``weight_average.*``, whichever mode saved it (:meth:`WeightAverage.trained_weights`), so loading it
+without the average gives the trained weights.
 """
+
+from contextlib import contextmanager
 
 import torch
 from torch import nn
@@ -26,7 +29,7 @@ class WeightAverage(nn.Module):
         for name, p in module.named_parameters():
             if p.requires_grad:
                 self.register_buffer(buffer_name(name), p.detach().clone())
-        self.register_buffer("swapped", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("swapped", torch.zeros((), dtype=torch.bool), persistent=False)
 
     def pairs(self, module: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
         params = dict(module.named_parameters())
@@ -51,3 +54,13 @@ class WeightAverage(nn.Module):
             p.copy_(average)
             average.copy_(trained)
         self.swapped.fill_(averaged)
+
+    @contextmanager
+    def trained_weights(self, module: nn.Module):
+        """The trained weights in ``module`` for the block (to save them), then the mode's weights again."""
+        averaged = bool(self.swapped)
+        self.use(module, averaged=False)
+        try:
+            yield
+        finally:
+            self.use(module, averaged=averaged)

@@ -64,9 +64,10 @@ def test_eval_mode_runs_on_the_weight_average_and_training_resumes_from_the_trai
     policy.save_pretrained(tmp_path / "in_train")
     saved = load_file(tmp_path / "in_train" / "model.safetensors")
     assert {k for k in saved if k.startswith("weight_average.")} == {
-        *(f"weight_average.{n.replace('.', '__')}" for n in average),
-        "weight_average.swapped",
+        f"weight_average.{n.replace('.', '__')}" for n in average
     }
+    in_eval = load_file(tmp_path / "in_eval" / "model.safetensors")
+    assert all(torch.equal(in_eval[k], value) for k, value in saved.items())  # the same file in either mode
 
     for folder in ("in_eval", "in_train"):  # either mode's checkpoint loads the same policy
         loaded = JEPTPolicy.from_pretrained(tmp_path / folder)
@@ -76,6 +77,9 @@ def test_eval_mode_runs_on_the_weight_average_and_training_resumes_from_the_trai
         torch.testing.assert_close(loaded.select_action(obs), actions)
         loaded.train()  # what a resumed lerobot-train does: it trains on the trained weights
         assert_weights(loaded, trained, exact=True)
+    without = JEPTPolicy.from_pretrained(tmp_path / "in_eval", weight_ema_decay=None)
+    assert "weight_average" not in without._modules
+    assert_weights(without, trained, exact=True)  # loaded without the average: the trained weights
 
 
 def test_no_weight_average_by_default_and_a_bad_decay_names_the_range(tiny_build):
