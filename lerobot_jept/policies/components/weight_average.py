@@ -25,10 +25,10 @@ class WeightAverage(nn.Module):
     def __init__(self, module: nn.Module, decay: float):
         super().__init__()
         self.decay = decay
-        self.names = [name for name, p in module.named_parameters() if p.requires_grad]
-        for name, p in module.named_parameters():
-            if p.requires_grad:
-                self.register_buffer(buffer_name(name), p.detach().clone())
+        trained = [(name, p) for name, p in module.named_parameters() if p.requires_grad]
+        self.names = [name for name, _ in trained]
+        for name, p in trained:
+            self.register_buffer(buffer_name(name), p.detach().clone())
         self.register_buffer("swapped", torch.zeros((), dtype=torch.bool), persistent=False)
 
     def pairs(self, module: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
