@@ -121,6 +121,38 @@ def test_training_resumes(trained):
 
 
 @pytest.mark.slow
+def test_lerobot_train_moves_the_weight_average_every_step_and_resumes_it(tiny_build, tmp_path):
+    """``--policy.weight_ema_decay`` through LeRobot's own loop: after every optimizer step the average moves
+    towards the trained weights with the warm-up decay, across a ``--resume=true``, and lerobot-eval runs on it."""
+    from safetensors.torch import load_file
+
+    out, _ = train(tmp_path, MIX, 2, "--policy.weight_ema_decay=0.5", "--save_freq=1")
+    run(
+        [
+            "lerobot-train",
+            f"--config_path={out}/checkpoints/last/pretrained_model/train_config.json",
+            "--resume=true",
+            "--steps=4",
+        ],
+        tmp_path,
+    )
+    states = [
+        load_file(out / f"checkpoints/00000{k}/pretrained_model/model.safetensors") for k in (1, 2, 3, 4)
+    ]
+    averaged = [k for k in states[0] if k.startswith("weight_average.")]
+    assert len(averaged) > 100
+    for k in range(2, 5):  # checkpoint k: the trained weights after step k and their average
+        decay = min(0.5, k / (9 + k))  # optimizer step k is update n = k - 1: (1 + n) / (10 + n)
+        before, now = states[k - 2], states[k - 1]
+        for key in averaged:
+            trained = now["model." + key.removeprefix("weight_average.").replace("__", ".")]
+            torch.testing.assert_close(now[key], decay * before[key] + (1 - decay) * trained)
+    assert any(not torch.equal(states[3][k], states[2][k]) for k in averaged)
+    info = lerobot_eval(out / "checkpoints/last/pretrained_model", tmp_path / "eval", tmp_path, steps=5)
+    assert info["overall"]["n_episodes"] == 1
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("repo, labelled", [("test/mw_tiny_demo", True), ("test/mw_tiny_video", False)])
 def test_trains_on_demos_alone_and_on_videos_alone(tiny_build, tmp_path, repo, labelled):
     extra = [] if labelled else ["--policy.action_dim=4"]
