@@ -427,7 +427,7 @@ class DiscreteActionPolicy(PreTrainedPolicy):
 
     def update(self) -> None:
         """After every optimizer step: count it, move the weight average (``weight_ema_decay``)."""
-        if self.config.weight_ema_decay is not None:
+        if "weight_average" in self._modules:
             self.weight_average.update(self.model, int(self.num_updates))
         self.num_updates += 1
 

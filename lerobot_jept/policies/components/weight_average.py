@@ -29,7 +29,9 @@ class WeightAverage(nn.Module):
         self.names = [name for name, _ in trained]
         for name, p in trained:
             self.register_buffer(buffer_name(name), p.detach().clone())
-        self.register_buffer("swapped", torch.zeros((), dtype=torch.bool), persistent=False)
+        self.swapped = (
+            False  # the average is in the network (eval mode); a plain flag: no device sync per step
+        )
 
     def pairs(self, module: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
         params = dict(module.named_parameters())
@@ -41,24 +43,24 @@ class WeightAverage(nn.Module):
         if self.swapped:
             raise RuntimeError("The weight average is in the network (eval mode): call policy.train() first.")
         decay = min(self.decay, (1 + step) / (10 + step))
-        for p, average in self.pairs(module):
-            average.lerp_(p.detach(), 1.0 - decay)
+        pairs = self.pairs(module)  # one fused lerp over all tensors, as timm's ModelEmaV3
+        torch._foreach_lerp_([a for _, a in pairs], [p.detach() for p, _ in pairs], 1.0 - decay)
 
     @torch.no_grad()
     def use(self, module: nn.Module, averaged: bool) -> None:
         """Put the average (``averaged``) or the trained weights into ``module``; exact both ways."""
-        if bool(self.swapped) == averaged:
+        if self.swapped == averaged:
             return
         for p, average in self.pairs(module):
             trained = p.detach().clone()
             p.copy_(average)
             average.copy_(trained)
-        self.swapped.fill_(averaged)
+        self.swapped = averaged
 
     @contextmanager
     def trained_weights(self, module: nn.Module):
         """The trained weights in ``module`` for the block (to save them), then the mode's weights again."""
-        averaged = bool(self.swapped)
+        averaged = self.swapped
         self.use(module, averaged=False)
         try:
             yield
