@@ -143,6 +143,7 @@ def make_state_inverse_dynamics(config: VideoPolicyConfig) -> SelfStateInverseDy
         config.obs_head_hidden_dim,
         config.obs_head_layers,
         config.idm_history or 0,  # jept_idm reads the one change (its retired field is None)
+        getattr(config, "chunk_size", 1),  # jept_idm reads actions, it predicts no change
     )
 
 

@@ -153,6 +153,27 @@ def test_lerobot_train_moves_the_weight_average_every_step_and_resumes_it(tiny_b
 
 
 @pytest.mark.slow
+def test_action_chunks_through_lerobot_train_and_lerobot_eval(tiny_build, tmp_path):
+    """``--policy.chunk_size`` trains through LeRobot's loop and is saved; lerobot-eval executes the chunks, takes
+    ``--policy.n_action_steps`` as a control setting and refuses one longer than the chunk."""
+    out, _ = train(tmp_path, MIX, 2, "--policy.chunk_size=2", "--policy.n_action_steps=2")
+    model = out / "checkpoints/last/pretrained_model"
+    saved = json.loads((model / "config.json").read_text())
+    assert (saved["chunk_size"], saved["n_action_steps"]) == (2, 2)
+    assert lerobot_eval(model, tmp_path / "eval", tmp_path, steps=5)["overall"]["n_episodes"] == 1
+    extra = ["--env.prompt_repo_id=" + PROMPTS, "--env.prompt_max_frames=4", "--policy.n_action_steps=1"]
+    assert (
+        lerobot_eval(model, tmp_path / "eval1", tmp_path, steps=5, prompt=extra)["overall"]["n_episodes"] == 1
+    )
+    log = run(
+        ["lerobot-eval", f"--policy.path={model}", "--policy.n_action_steps=3", "--env.type=jept_metaworld"],
+        tmp_path,
+        ok=False,
+    )
+    assert "n_action_steps must be in [1, chunk_size] = [1, 2]" in log
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("repo, labelled", [("test/mw_tiny_demo", True), ("test/mw_tiny_video", False)])
 def test_trains_on_demos_alone_and_on_videos_alone(tiny_build, tmp_path, repo, labelled):
     extra = [] if labelled else ["--policy.action_dim=4"]

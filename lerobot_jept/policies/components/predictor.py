@@ -191,9 +191,12 @@ class SelfStateInverseDynamics(nn.Module):
     with ``history`` h > 0 it also reads the h observed changes into s_t (the arm lags its commanded motion, and
     how far it lags tells the action apart).
 
+    With ``chunk`` H > 1 Gamma_state predicts the next H changes s_{t+1} - s_t, ..., s_{t+H} - s_{t+H-1} from
+    o_t's tokens (an action chunk: :meth:`chunk_logits` reads an action from each).
+
     ``change_of`` (B, T + 1, S) states -> (B, T, S) scaled changes; ``past_changes`` (B, T, S) states ->
-    (B, T, h * S); ``predict_change`` (B, T, N, width) -> (B, T, S); ``forward`` (..., S) states, (..., S) changes
-    and (..., h * S) past changes -> logits (..., action_dim, num_bins).
+    (B, T, h * S); ``predict_changes`` (B, T, N, width) -> (B, T, H, S); ``forward`` (..., S) states, (..., S)
+    changes and (..., h * S) past changes -> logits (..., action_dim, num_bins).
     """
 
     def __init__(
@@ -205,12 +208,14 @@ class SelfStateInverseDynamics(nn.Module):
         hidden_dim: int,
         layers: int,
         history: int = 0,
+        chunk: int = 1,
     ):
         super().__init__()
-        self.change_head = ObservationHead(width, state_dim, hidden_dim, layers)
+        self.change_head = ObservationHead(width, chunk * state_dim, hidden_dim, layers)
         self.inverse = ObservationHead((2 + history) * state_dim, action_dim * num_bins, hidden_dim, layers)
         self.action_dim = action_dim
         self.history = history
+        self.chunk = chunk
         self.register_buffer("scale", torch.ones(state_dim))
         self.register_buffer("scale_updates", torch.zeros((), dtype=torch.long))
 
@@ -232,8 +237,28 @@ class SelfStateInverseDynamics(nn.Module):
         changes = F.pad(self.change_of(state), (0, 0, self.history, 0))  # (B, T - 1 + h, S)
         return rearrange(changes.unfold(1, self.history, 1), "b t s h -> b t (h s)")
 
-    def predict_change(self, z_obs: Tensor) -> Tensor:
-        return self.change_head(z_obs.mean(-2))
+    def predict_changes(self, z_obs: Tensor) -> Tensor:
+        return rearrange(self.change_head(z_obs.mean(-2)), "... (h s) -> ... h s", h=self.chunk)
+
+    def chunk_targets(self, state: Tensor, frame_ok: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, T + 1, S) states and (B, T) real-frame mask -> the scaled changes each of the T frames' chunk
+        predicts (B, T, H, S) and which of them the window holds and are real (B, T, H): frame j's i-th is the
+        change from frame j + i into j + i + 1."""
+        pad = self.chunk - 1
+        changes = F.pad(self.change_of(state), (0, 0, 0, pad)).unfold(1, self.chunk, 1)  # (B, T, S, H)
+        ok = F.pad(frame_ok, (0, pad)).unfold(1, self.chunk, 1)  # (B, T, H)
+        return rearrange(changes, "b t s h -> b t h s"), ok
+
+    def chunk_logits(self, states: Tensor, changes: Tensor) -> Tensor:
+        """Logits (B, H, action_dim, num_bins) of a_t .. a_{t+H-1} from the latest observed states, ending with
+        s_t (B, >= h + 1, S), and the H predicted scaled changes after it (B, H, S): the i-th action is read
+        from the state reached by the i changes before it, with the h changes (observed, then predicted) into
+        that state."""
+        steps = changes.shape[1]
+        reached = states[:, -1:] + torch.cumsum(changes * self.scale, 1)[:, :-1]  # s_{t+1} .. s_{t+H-1}
+        path = torch.cat([states, reached], 1)  # .. s_t .. s_{t+H-1}
+        past = self.past_changes(path)[:, -steps:]
+        return self(path[:, -steps:], changes, past if self.history else None)
 
     def forward(self, state: Tensor, change: Tensor, past: Tensor | None = None) -> Tensor:
         if past is None and self.history:

@@ -78,6 +78,12 @@ class JEPTConfig(VideoPolicyConfig):
             ``n_obs_steps - 1``). The arm lags its commanded motion, so the change into s_t tells how far:
             ``jept-screen --history=1`` lifts the share of the video-only tasks' actions readable from the true
             changes by 5-6 points on both transfer builds (docs/results.md, "Screening levers").
+        chunk_size, n_action_steps: with ``idm_input="self_state"`` (not in the paper), action chunks: Gamma_state
+            predicts the next ``chunk_size`` H self-state changes from o_t's tokens (each trained on the window's
+            frames whose window holds it, so H is at most ``n_obs_steps``), the inverse dynamics reads an action
+            from each (a_{t+i} from the state the i predicted changes before it reach), and control executes the
+            first ``n_action_steps`` of them before it predicts again (1 <= n_action_steps <= H; a control
+            setting, ``--policy.n_action_steps`` at evaluation). 1 and 1: one change, one action per step.
         state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
             divided by its running RMS); used with ``idm_input="self_state"`` only.
         ema_decay: decay of the EMA target encoder (not given by the paper; I-JEPA's 0.996).
@@ -118,6 +124,8 @@ class JEPTConfig(VideoPolicyConfig):
     recipe: str = "plus"
     idm_input: str | None = None  # None: the recipe's
     idm_history: int = 0
+    chunk_size: int = 1
+    n_action_steps: int = 1
     state_loss_weight: float = 1.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
@@ -157,6 +165,21 @@ class JEPTConfig(VideoPolicyConfig):
             raise ValueError(
                 f"idm_history={self.idm_history} is read by the self-state inverse dynamics only: add "
                 "--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.idm_history."
+            )
+        if not 1 <= self.chunk_size <= self.n_obs_steps:
+            raise ValueError(
+                f"chunk_size must be in [1, n_obs_steps] = [1, {self.n_obs_steps}] (the changes a training window "
+                f"holds after its first frame), got {self.chunk_size}."
+            )
+        if self.chunk_size > 1 and self.idm_input != "self_state":
+            raise ValueError(
+                f"chunk_size={self.chunk_size} chunks the self-state changes Gamma_state predicts: add "
+                "--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.chunk_size."
+            )
+        if not 1 <= self.n_action_steps <= self.chunk_size:
+            raise ValueError(
+                f"n_action_steps must be in [1, chunk_size] = [1, {self.chunk_size}] (the actions of a predicted "
+                f"chunk executed before the next prediction), got {self.n_action_steps}."
             )
         if not 0.0 <= self.prompt_dropout < 1.0:
             raise ValueError(f"prompt_dropout is a probability in [0, 1), got {self.prompt_dropout}.")

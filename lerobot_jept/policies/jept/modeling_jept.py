@@ -12,6 +12,7 @@ predict a_t.
 """
 
 import copy
+from collections import deque
 
 import torch
 import torch.nn.functional as F  # noqa: N812
@@ -132,7 +133,7 @@ class JEPT(VisualPolicyNet):
         self, prompt: Tensor | None, obs: Tensor, emb: Tensor, state: Tensor | None = None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """Predicted joint embeddings (B, k, N, J) from the obs tokens, action logits (B, k, A, bins) and, with
-        ``idm_input="self_state"``, the predicted self-state changes (B, k, S) (else None). There the inverse
+        ``idm_input="self_state"``, the predicted self-state changes (B, k, chunk_size, S) (else None). There the inverse
         dynamics reads the real changes of ``state`` (B, k + 1, S), as the paper's reads the real h_{t+1}
         (no logits without it)."""
         z_obs, z_emb = self.predictor(prompt, obs, emb)
@@ -142,9 +143,9 @@ class JEPT(VisualPolicyNet):
             return pred_h, self.action_head(z_emb), None
         k = obs.shape[1]
         if state is None:
-            return pred_h, None, sd.predict_change(z_obs)
+            return pred_h, None, sd.predict_changes(z_obs)
         logits = sd(state[:, :k], sd.change_of(state[:, : k + 1]), sd.past_changes(state[:, :k]))
-        return pred_h, logits, sd.predict_change(z_obs)
+        return pred_h, logits, sd.predict_changes(z_obs)
 
     @torch.no_grad()
     def update_target(self, decay: float) -> None:
@@ -216,9 +217,12 @@ class JEPTPolicy(DiscreteActionPolicy):
         extra, extra_info = self._prompt_losses(
             batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok, kept
         )
-        if change is not None:  # Gamma_state (idm_input=self_state), on every frame with a real next one
-            error = (change - m.state_dynamics.change_of(batch[OBS_STATE])).pow(2).mean(-1)
-            loss_state = frame_mean(error, frame_ok)
+        if (
+            change is not None
+        ):  # Gamma_state (idm_input=self_state), on every change the window holds for real
+            target, ok = m.state_dynamics.chunk_targets(batch[OBS_STATE], frame_ok)
+            error = (change - target).pow(2).mean(-1)  # (B, k, chunk_size)
+            loss_state = frame_mean(error.flatten(1), ok.flatten(1))
             extra = extra + cfg.state_loss_weight * loss_state
             extra_info["loss_state"] = loss_state.mean().item()
         per_sample = per_sample + extra
@@ -306,7 +310,9 @@ class JEPTPolicy(DiscreteActionPolicy):
         prompt = self.prompt(batch) if self.prompt_active else None
         pred_h, logits, _ = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
         return {
-            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], batch[OBS_STATE][:, :k]),
+            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], batch[OBS_STATE][:, :k])[
+                :, 0
+            ],
             "inverse": logits[:, -1],
             "loss_obs": self._obs_loss(batch, pred_h, targets)[0],
         }
@@ -339,22 +345,32 @@ class JEPTPolicy(DiscreteActionPolicy):
         super().reset()
         # The predictor's keys and values under the prompt and under the null prompt, with the prompt they are of.
         self._prompt_kv: dict[str, tuple] = {}
+        self._action_queue: deque[Tensor] = deque()  # the rest of the chunk being executed (n_action_steps)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """(B, action_dim) actions for the current observation (see ``control_actions``)."""
+        """(B, action_dim) actions for the current observation (see ``control_actions``): the next action of
+        the chunk being executed, else the first of a new chunk, of which the first ``n_action_steps`` are
+        executed."""
         m = self.model
         prompt = self.episode_prompt(batch, self.prompt_active)
-        obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D)
+        obs = self.context_tokens(self.camera_frames(batch), batch[OBS_STATE])  # (B, k, N, D), every frame
+        if self._action_queue:
+            return self._action_queue.popleft()
         h_past = m.encoder.temporal.context_embeddings(obs, first=1)  # h_{t-k+2} .. h_t
         recent = list(self._frames)[-(self.config.idm_history + 1) :]  # what the inverse dynamics reads
         states = torch.stack([state for _, state in recent], 1)  # s_{t-h} .. s_t
-        return self.control_actions(self._control_logits(prompt, obs, h_past, states))
+        logits = self._control_logits(prompt, obs, h_past, states)
+        self._action_queue.extend(
+            self.control_actions(logits[:, i]) for i in range(self.config.n_action_steps)
+        )
+        return self._action_queue.popleft()
 
     def _control_logits(self, prompt: Tensor | None, obs: Tensor, h_past: Tensor, states: Tensor) -> Tensor:
-        """Logits (B, A, bins) of a_t from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and the
+        """Logits (B, H, A, bins) of a_t .. a_{t+H-1} (H = ``chunk_size``; 1 without a self-state inverse
+        dynamics) from the obs tokens of o_{t-k+1..t} (B, k, N, D), h_{t-k+2..t} and the
         latest self-states, ending with s_t (B, >= idm_history + 1, S): the inverse dynamics of the predicted
-        h_{t+1} or, with ``idm_input="self_state"``, of the self-state change predicted from o_t's tokens. With
+        h_{t+1} or, with ``idm_input="self_state"``, of the self-state changes predicted from o_t's tokens. With
         ``prompt_guidance`` w, that prediction x (the change, else the logits) becomes x + w (x - x_null), x_null the one under the learned null prompt
         (``prompt_dropout``) or, without one, with no prompt (the prompt warm-up's prediction)."""
         cfg, m = self.config, self.model
@@ -366,12 +382,12 @@ class JEPTPolicy(DiscreteActionPolicy):
                     cached = self._prompt_kv[role] = (prompt, m.predictor.prompt_kv(p))
                 kv = cached[1]
                 if m.state_dynamics is not None:
-                    return m.state_dynamics.predict_change(m.predictor.last_obs_hidden(kv, obs, h_past))
+                    return m.state_dynamics.predict_changes(m.predictor.last_obs_hidden(kv, obs, h_past))
                 hidden = m.predictor.forward_last_step(kv, obs, h_past, m.obs_head)
                 return m.action_head(hidden[:, None])[:, 0]
             # the reference: full passes; for Gamma_act, h_{t+1} predicted by the first and fed into the second
             if m.state_dynamics is not None:
-                return m.state_dynamics.predict_change(m.predictor(p, obs, h_past)[0][:, -1])
+                return m.state_dynamics.predict_changes(m.predictor(p, obs, h_past)[0][:, -1])
             placeholder = torch.zeros_like(obs[:, :1, :, : cfg.joint_embedding_dim])
             pred_h = m.predict(p, obs, torch.cat([h_past, placeholder], 1))[0]
             return m.predict(p, obs, torch.cat([h_past, pred_h[:, -1:]], 1))[1][:, -1]
@@ -381,4 +397,4 @@ class JEPTPolicy(DiscreteActionPolicy):
             null = None if m.null_prompt is None else m.null_prompt(prompt)
             x = x + cfg.prompt_guidance * (x - predicted(null, "null"))
         sd = m.state_dynamics
-        return x if sd is None else sd(states[:, -1], x, sd.past_changes(states)[:, -1])
+        return x[:, None] if sd is None else sd.chunk_logits(states, x)

@@ -564,6 +564,94 @@ def test_past_changes_are_the_scaled_changes_into_each_frame_oldest_first():
     assert SelfStateInverseDynamics(8, 2, 4, 7, 16, 2).past_changes(state).shape == (1, 4, 0)
 
 
+def test_chunk_targets_and_chunk_logits_by_hand():
+    """Frame j's i-th target is the scaled change from frame j + i into j + i + 1, masked where the window ends or
+    the next frame is padding; the i-th action of a chunk is read from the state its i predicted changes reach,
+    with the change into that state (observed, then predicted) as its past."""
+    from lerobot_jept.policies.components.predictor import SelfStateInverseDynamics
+
+    sd = SelfStateInverseDynamics(8, 2, 4, 7, 16, 2, history=1, chunk=3)
+    sd.scale.fill_(2.0)
+    state = torch.tensor([[[0.0, 0.0], [1.0, 2.0], [3.0, 6.0], [6.0, 12.0]]])  # changes (1,2) (2,4) (3,6)
+    frame_ok = torch.tensor([[1.0, 1.0, 0.0]])  # the last frame is padding
+    target, ok = sd.chunk_targets(state, frame_ok)
+    assert target.shape == (1, 3, 3, 2) and ok.shape == (1, 3, 3)
+    changes = torch.tensor([[1.0, 2.0], [2.0, 4.0], [3.0, 6.0]]) / 2
+    torch.testing.assert_close(target[0, 0], changes)
+    torch.testing.assert_close(target[0, 1, :2], changes[1:])
+    torch.testing.assert_close(ok[0], torch.tensor([[1.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+
+    observed = state[:, :2]  # s_{t-1}, s_t
+    predicted = torch.tensor(
+        [[[0.5, 0.5], [1.0, -1.0], [0.0, 2.0]]]
+    )  # scaled: (1, 1), (2, -2), (0, 4) in units
+    logits = sd.chunk_logits(observed, predicted)
+    assert logits.shape == (1, 3, 4, 7)
+    s_t = observed[:, -1]
+    reached = [s_t, s_t + torch.tensor([1.0, 1.0]), s_t + torch.tensor([3.0, -1.0])]
+    past = [sd.change_of(observed)[:, -1], predicted[:, 0], predicted[:, 1]]
+    for i in range(3):
+        torch.testing.assert_close(logits[:, i], sd(reached[i], predicted[:, i], past[i]))
+    one = SelfStateInverseDynamics(8, 2, 4, 7, 16, 2)
+    torch.testing.assert_close(one.chunk_logits(observed, predicted[:, :1])[:, 0], one(s_t, predicted[:, 0]))
+
+
+def test_action_chunks_train_and_execute_n_action_steps_per_prediction(tiny_build, tmp_path):
+    """chunk_size=3: Gamma_state predicts three changes per frame and learns them; control predicts once every
+    n_action_steps steps and executes the chunk's actions in order (what offline control decodes for the
+    first); the chunk's loss at chunk_size=1 is the one-change loss."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    policy, pre, _ = build_policy(tiny_build, chunk_size=3, n_action_steps=3)
+    state_dim = policy.config.input_features["observation.state"].shape[0]
+    assert policy.model.state_dynamics.change_head.mlp[-1].out_features == 3 * state_dim
+    first, info = overfit(policy, pre)
+    assert info["loss_state"] < 0.5 * first["loss_state"]
+
+    policy.eval()
+    k = policy.config.n_obs_steps
+    ds = load(MIX, delta_timestamps=resolve_delta_timestamps(policy.config, LeRobotDatasetMetadata(MIX)))
+    start = ds.meta.episodes[0]["dataset_from_index"]
+    window = pre(torch.utils.data.default_collate([ds[start + k - 1]]))
+    predictions = []
+    control = policy._control_logits
+    policy._control_logits = lambda *a: predictions.append(control(*a)) or predictions[-1]
+    for n_action_steps in (3, 1):
+        policy.config.n_action_steps = n_action_steps
+        predictions.clear()
+        policy.reset()
+        actions = []
+        for i in range(k):
+            obs = {key: window[key][:, i] for key in ("observation.image", "observation.state")}
+            actions.append(policy.select_action({**obs, PROMPT_VIDEO: window[PROMPT_VIDEO]}))
+        assert len(predictions) == -(-k // n_action_steps)
+        assert predictions[0].shape == (1, 3, 4, 7)
+        executed = torch.cat([policy.bin_centres[p[:, :n_action_steps].argmax(-1)] for p in predictions], 1)
+        torch.testing.assert_close(torch.stack(actions, 1), executed.view(1, -1, 4)[:, :k])
+    torch.testing.assert_close(
+        policy.offline_outputs(window)["control"].argmax(-1), predictions[-1][:, 0].argmax(-1)
+    )
+
+    one, _, _ = build_policy(tiny_build)
+    batch = pre(mixed_batch(one.config, size=4, seed=3))
+    _, obs, h_in = one._encode_window(batch)
+    change = one.model.predict(None, obs[:, :k], h_in, batch["observation.state"])[2]
+    target, ok = one.model.state_dynamics.chunk_targets(batch["observation.state"], torch.ones(4, k))
+    torch.testing.assert_close(
+        target[:, :, 0], one.model.state_dynamics.change_of(batch["observation.state"])
+    )
+    assert change.shape == (4, k, 1, state_dim) and bool(ok.all())
+
+
+def test_action_chunks_are_checked():
+    with pytest.raises(ValueError, match="chunk_size must be in"):
+        tiny_config(chunk_size=tiny_config().n_obs_steps + 1)
+    with pytest.raises(ValueError, match="add --policy.idm_input=self_state"):
+        tiny_config(recipe="paper", chunk_size=2)
+    with pytest.raises(ValueError, match="n_action_steps must be in"):
+        tiny_config(chunk_size=2, n_action_steps=3)
+
+
 @pytest.mark.parametrize("idm_input, dropout", [("embedding", 0.5), ("self_state", 0.5), ("self_state", 0.0)])
 def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(
     tiny_build, tmp_path, idm_input, dropout
@@ -598,12 +686,12 @@ def test_prompt_guidance_moves_the_prediction_away_from_the_null_prompt(
     null_prompt = m.null_prompt(prompt) if dropout else None
     _, obs, h_in = policy._encode_window(window)
     if idm_input == "self_state":
-        change, null_change = (m.predict(p, obs[:, :k], h_in)[2][:, -1] for p in (prompt, null_prompt))
+        change, null_change = (m.predict(p, obs[:, :k], h_in)[2][:, -1, 0] for p in (prompt, null_prompt))
         expected = m.state_dynamics(
             window["observation.state"][:, k - 1], change + 2 * (change - null_change)
         )
     else:
-        null = policy._control_logits(null_prompt, obs[:, :k], h_in[:, : k - 1], None)
+        null = policy._control_logits(null_prompt, obs[:, :k], h_in[:, : k - 1], None)[:, 0]
         expected = plain + 2 * (plain - null)
     policy.config.prompt_guidance = 2.0
     guided = policy.offline_outputs(window)["control"]
