@@ -133,9 +133,9 @@ class JEPT(VisualPolicyNet):
         self, prompt: Tensor | None, obs: Tensor, emb: Tensor, state: Tensor | None = None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """Predicted joint embeddings (B, k, N, J) from the obs tokens, action logits (B, k, A, bins) and, with
-        ``idm_input="self_state"``, the predicted self-state changes (B, k, chunk_size, S) (else None). There the inverse
-        dynamics reads the real changes of ``state`` (B, k + 1, S), as the paper's reads the real h_{t+1}
-        (no logits without it)."""
+        ``idm_input="self_state"``, the predicted self-state changes (B, k, chunk_size, S) (else None). There
+        the inverse dynamics reads the real changes of ``state`` (B, k + 1, S), as the paper's reads the real
+        h_{t+1} (no logits without it)."""
         z_obs, z_emb = self.predictor(prompt, obs, emb)
         pred_h = self.obs_head(z_obs)
         sd = self.state_dynamics
@@ -217,9 +217,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         extra, extra_info = self._prompt_losses(
             batch, prompt, obs[:, :k], h_in, targets, dist, frame_ok, kept
         )
-        if (
-            change is not None
-        ):  # Gamma_state (idm_input=self_state), on every change the window holds for real
+        if change is not None:  # Gamma_state (idm_input=self_state), on each change the window holds for real
             target, ok = m.state_dynamics.chunk_targets(batch[OBS_STATE], frame_ok)
             error = (change - target).pow(2).mean(-1)  # (B, k, chunk_size)
             loss_state = frame_mean(error.flatten(1), ok.flatten(1))
@@ -309,10 +307,9 @@ class JEPTPolicy(DiscreteActionPolicy):
         targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
         pred_h, logits, _ = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
+        states = batch[OBS_STATE][:, :k]
         return {
-            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], batch[OBS_STATE][:, :k])[
-                :, 0
-            ],
+            "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], states)[:, 0],
             "inverse": logits[:, -1],
             "loss_obs": self._obs_loss(batch, pred_h, targets)[0],
         }
