@@ -156,31 +156,23 @@ class JEPTConfig(VideoPolicyConfig):
                 "pass --policy.phase_schedule=alternate (Algorithm 1) or joint."
             )
         check_idm_input(self.idm_input)
-        if not 0 <= self.idm_history < self.n_obs_steps:
-            raise ValueError(
-                f"idm_history must be in [0, n_obs_steps - 1] = [0, {self.n_obs_steps - 1}] (the changes into s_t "
-                f"the context holds), got {self.idm_history}."
-            )
-        if self.idm_history and self.idm_input != "self_state":
-            raise ValueError(
-                f"idm_history={self.idm_history} is read by the self-state inverse dynamics only: add "
-                "--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.idm_history."
-            )
-        if not 1 <= self.chunk_size <= self.n_obs_steps:
-            raise ValueError(
-                f"chunk_size must be in [1, n_obs_steps] = [1, {self.n_obs_steps}] (the changes a training window "
-                f"holds after its first frame), got {self.chunk_size}."
-            )
-        if self.chunk_size > 1 and self.idm_input != "self_state":
-            raise ValueError(
-                f"chunk_size={self.chunk_size} chunks the self-state changes Gamma_state predicts: add "
-                "--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.chunk_size."
-            )
-        if not 1 <= self.n_action_steps <= self.chunk_size:
-            raise ValueError(
-                f"n_action_steps must be in [1, chunk_size] = [1, {self.chunk_size}] (the actions of a predicted "
-                f"chunk executed before the next prediction), got {self.n_action_steps}."
-            )
+        k, value = self.n_obs_steps, lambda name: getattr(self, name)
+        ranges = {  # option -> its lowest and highest value, those in words, why
+            "idm_history": (0, k - 1, "0, n_obs_steps - 1", "changes into s_t the context holds"),
+            "chunk_size": (1, k, "1, n_obs_steps", "changes a window holds after its first frame"),
+            "n_action_steps": (1, self.chunk_size, "1, chunk_size", "a chunk's actions run per prediction"),
+        }
+        for name, (low, high, bounds, why) in ranges.items():
+            if not low <= value(name) <= high:
+                raise ValueError(
+                    f"{name} must be in [{bounds}] = [{low}, {high}] ({why}), got {value(name)}."
+                )
+        for name, off in (("idm_history", 0), ("chunk_size", 1)):
+            if value(name) != off and self.idm_input != "self_state":
+                raise ValueError(
+                    f"{name}={value(name)} works with the self-state inverse dynamics only: add "
+                    f"--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.{name}."
+                )
         if not 0.0 <= self.prompt_dropout < 1.0:
             raise ValueError(f"prompt_dropout is a probability in [0, 1), got {self.prompt_dropout}.")
         if self.prompt_guidance < 0:
