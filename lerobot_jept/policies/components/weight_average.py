@@ -29,9 +29,8 @@ class WeightAverage(nn.Module):
         self.names = [name for name, _ in trained]
         for name, p in trained:
             self.register_buffer(buffer_name(name), p.detach().clone())
-        self.swapped = (
-            False  # the average is in the network (eval mode); a plain flag: no device sync per step
-        )
+        # The average is in the network (eval mode): a plain flag, so reading it costs no device sync per step.
+        self.swapped = False
 
     def pairs(self, module: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
         params = dict(module.named_parameters())
