@@ -86,6 +86,12 @@ class JEPTConfig(VideoPolicyConfig):
             setting, ``--policy.n_action_steps`` at evaluation). 1 and 1: one change, one action per step.
         state_loss_weight: weight of Gamma_state's loss (mean squared error of the change, each dimension
             divided by its running RMS); used with ``idm_input="self_state"`` only.
+        change_consistency_weight: with ``idm_input="self_state"`` (not in the paper; 0, off, by default), the
+            weight of a term that trains Gamma_state in the measure control uses it in: the actions the inverse
+            dynamics reads from the predicted change should be the ones it reads from the real change
+            (cross-entropy against its own bin probabilities there), on every real frame, videos included.
+            Its gradient reaches Gamma_state and what feeds it, not the inverse dynamics. The squared error
+            alone fits the mean change, which can sit in another action's bins than any change the data hold.
         ema_decay: decay of the EMA target encoder (not given by the paper; I-JEPA's 0.996).
         phase_schedule: "alternate" (Algorithm 1: encoder-only phases and other-components phases) or "joint".
         phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch; its length in steps is not
@@ -127,6 +133,7 @@ class JEPTConfig(VideoPolicyConfig):
     chunk_size: int = 1
     n_action_steps: int = 1
     state_loss_weight: float = 1.0
+    change_consistency_weight: float = 0.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
     phase_steps: int = 1000
@@ -161,13 +168,14 @@ class JEPTConfig(VideoPolicyConfig):
             "idm_history": (0, k - 1, "0, n_obs_steps - 1", "changes into s_t the context holds"),
             "chunk_size": (1, k, "1, n_obs_steps", "changes a window holds after its first frame"),
             "n_action_steps": (1, self.chunk_size, "1, chunk_size", "a chunk's actions run per prediction"),
+            "change_consistency_weight": (0.0, float("inf"), "0, inf", "a loss weight"),
         }
         for name, (low, high, bounds, why) in ranges.items():
             if not low <= value(name) <= high:
                 raise ValueError(
                     f"{name} must be in [{bounds}] = [{low}, {high}] ({why}), got {value(name)}."
                 )
-        for name, off in (("idm_history", 0), ("chunk_size", 1)):
+        for name, off in (("idm_history", 0), ("chunk_size", 1), ("change_consistency_weight", 0.0)):
             if value(name) != off and self.idm_input != "self_state":
                 raise ValueError(
                     f"{name}={value(name)} works with the self-state inverse dynamics only: add "

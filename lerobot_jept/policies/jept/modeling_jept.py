@@ -223,6 +223,10 @@ class JEPTPolicy(DiscreteActionPolicy):
             loss_state = frame_mean(error.flatten(1), ok.flatten(1))
             extra = extra + cfg.state_loss_weight * loss_state
             extra_info["loss_state"] = loss_state.mean().item()
+            if cfg.change_consistency_weight:
+                consistency = self._change_consistency(batch[OBS_STATE], change[:, :, 0], logits, ok[..., 0])
+                extra = extra + cfg.change_consistency_weight * consistency
+                extra_info["loss_consistency"] = consistency.mean().item()
         per_sample = per_sample + extra
         info = {
             "loss_obs": loss_obs.mean().item(),
@@ -286,6 +290,20 @@ class JEPTPolicy(DiscreteActionPolicy):
         m = self.model
         target_obs = m.tokenize(m.target_encoder.tokenizer, tokens.detach(), batch[OBS_STATE])
         return m.target_encoder.temporal.context_embeddings(target_obs, first=1)
+
+    def _change_consistency(self, state: Tensor, predicted: Tensor, real: Tensor, ok: Tensor) -> Tensor:
+        """``change_consistency_weight``'s term -> per sample (B,): the cross-entropy of the action bins the
+        inverse dynamics reads from the predicted changes (B, k, S) against its bin probabilities from the real
+        ones (``real``, logits (B, k, A, bins)), over the frames whose next frame is real (``ok``, (B, k)) and
+        whose past changes the window holds. The inverse dynamics runs on detached weights: the term trains
+        what predicts the change, never what reads it."""
+        sd, k = self.model.state_dynamics, predicted.shape[1]
+        weights = {name: p.detach() for name, p in sd.named_parameters()}
+        logits = torch.func.functional_call(
+            sd, weights, (state[:, :k], predicted, sd.past_changes(state[:, :k]))
+        )
+        ce = -(real.detach().softmax(-1) * logits.log_softmax(-1)).sum(-1).mean(-1)  # (B, k)
+        return frame_mean(ce[:, sd.history :], ok[:, sd.history :])
 
     def _obs_loss(self, batch: dict[str, Tensor], pred_h: Tensor, targets: Tensor) -> tuple[Tensor, ...]:
         """L_obs (eq. 7): the L2 distance per token between predicted and target joint embeddings, averaged

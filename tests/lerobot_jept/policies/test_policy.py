@@ -14,6 +14,7 @@ from lerobot.processor import PolicyProcessorPipeline
 from safetensors.torch import load_file
 
 from lerobot_jept import JEPTConfig, JEPTPolicy
+from lerobot_jept.policies.base import frame_mean
 from lerobot_jept.policies.jept.modeling_jept import IGNORE_INDEX, PROMPT_VIDEO
 from lerobot_jept.policies.jept.processor_jept import JeptActionBinsStep
 from lerobot_jept.policies.prompts import PromptNotFoundError
@@ -536,6 +537,54 @@ def test_self_state_inverse_dynamics_trains_and_controls_from_the_predicted_chan
     torch.testing.assert_close(
         reloaded.offline_outputs(window)["control"], policy.offline_outputs(window)["control"]
     )
+
+
+def test_change_consistency_trains_the_change_predictor_not_the_inverse_dynamics(tiny_build):
+    """change_consistency_weight: the cross-entropy of the actions read from the predicted change against the
+    inverse dynamics' bin probabilities from the real one, over real frames past the history; its gradient
+    reaches the predicted change and never the inverse dynamics; it is the entropy of those probabilities (its
+    least) when the predicted change is the real one; it falls when training."""
+    policy, pre, _ = build_policy(
+        tiny_build, idm_input="self_state", idm_history=1, change_consistency_weight=1.0
+    )
+    sd, k = policy.model.state_dynamics, policy.config.n_obs_steps
+    sd.scale.fill_(0.05)
+    state = pre(mixed_batch(policy.config, size=4, seed=3))["observation.state"]  # (B, k + 1, S)
+    real_change = sd.change_of(state)
+    real = sd(state[:, :k], real_change, sd.past_changes(state[:, :k]))
+    ok = torch.ones(state.shape[0], k)
+    ok[0, -1] = 0.0  # a padded next frame
+    predicted = torch.randn_like(real_change, requires_grad=True)
+    term = policy._change_consistency(state, predicted, real, ok)
+
+    by_hand = torch.zeros(state.shape[0])
+    for b in range(state.shape[0]):
+        frames = [t for t in range(1, k) if ok[b, t]]  # history 1: not the first frame
+        for t in frames:
+            logits = sd(state[b, t], predicted[b, t], real_change[b, t - 1])
+            by_hand[b] += -(real[b, t].softmax(-1) * logits.log_softmax(-1)).sum(-1).mean() / len(frames)
+    torch.testing.assert_close(term, by_hand)
+
+    term.sum().backward()
+    assert predicted.grad.abs().sum() > 0
+    assert all(p.grad is None for p in sd.parameters())
+    at_real = policy._change_consistency(state, real_change, real, ok)
+    entropy = -(real.softmax(-1) * real.log_softmax(-1)).sum(-1).mean(-1)
+    torch.testing.assert_close(at_real, frame_mean(entropy[:, 1:], ok[:, 1:]))
+    assert (at_real < term).all()
+
+    first, info = overfit(policy, pre)
+    assert info["loss_consistency"] < first["loss_consistency"]
+    assert (
+        "loss_consistency"
+        not in build_policy(tiny_build, idm_input="self_state")[0].forward(
+            pre(mixed_batch(policy.config, size=2))
+        )[1]
+    )
+    with pytest.raises(ValueError, match="change_consistency_weight must be in"):
+        tiny_config(idm_input="self_state", change_consistency_weight=-1.0)
+    with pytest.raises(ValueError, match="add --policy.idm_input=self_state"):
+        tiny_config(idm_input="embedding", change_consistency_weight=1.0)
 
 
 def test_idm_input_must_be_known():
