@@ -302,7 +302,8 @@ class JEPTPolicy(DiscreteActionPolicy):
         logits = torch.func.functional_call(
             sd, weights, (state[:, :k], predicted, sd.past_changes(state[:, :k]))
         )
-        ce = -(real.detach().softmax(-1) * logits.log_softmax(-1)).sum(-1).mean(-1)  # (B, k)
+        target = real.detach().softmax(-1).movedim(-1, 1)  # the bins as cross_entropy's class dimension
+        ce = F.cross_entropy(logits.movedim(-1, 1), target, reduction="none").mean(-1)  # (B, k)
         return frame_mean(ce[:, sd.history :], ok[:, sd.history :])
 
     def _obs_loss(self, batch: dict[str, Tensor], pred_h: Tensor, targets: Tensor) -> tuple[Tensor, ...]:
