@@ -163,9 +163,11 @@ class StudyProgress:
 
     def _show(self) -> None:
         now = self.shown_at = time.perf_counter()
-        self.bar.n = self.done_seconds() + sum(
-            min(now - since, 0.95 * self.estimates[i]) for i, since in self.running_since.items()
-        )
+        running = sum(min(now - since, 0.95 * self.estimates[i]) for i, since in self.running_since.items())
+        # tqdm's ETA divides what is left by the progress made since the bar opened: steps that have only
+        # just started would give it a speed near zero and an ETA of days; until they have run a second it
+        # shows "?"
+        self.bar.n = self.done_seconds() + (running if running >= 1.0 else 0.0)
         names = ", ".join(self.steps[i].what for i in self.running_since)
         self.bar.set_postfix_str(
             f"{len(self.completed)}/{len(self.steps)} steps done; {names}", refresh=False

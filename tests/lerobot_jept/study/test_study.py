@@ -340,6 +340,7 @@ def test_the_progress_bar_weighs_steps_by_what_finished_ones_took(tmp_path):
     suite = steps[keys.index("s/JEPT/seed2/suite")]
     progress.start(suite)
     assert "3/" in progress.bar.postfix and suite.what in progress.bar.postfix
+    assert "<?" in str(progress.bar)  # a step just started says nothing yet of the speed: no ETA of days
     # past its estimate: the bar stops short of the step's end
     progress.running_since[keys.index(suite.key)] -= 10_000.0
     progress.redraw_every = 0.0  # as in a terminal
