@@ -3,6 +3,7 @@ across Algorithm 1's phase switches and the prompt warm-up, and the checkpoint c
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -14,8 +15,11 @@ from tests.lerobot_jept.test_end_to_end import CONFIG, MIX, PROMPTS, TINY_TRAIN
 
 BIN = Path(sys.executable).parent
 # lerobot-train, with every rank writing a fingerprint of its parameters after each optimizer step.
+# A rank that hangs (a collective one rank never reaches, a thread that blocks exit) prints every thread's stack
+# and exits, so the launcher fails with the stacks in its output instead of the test waiting forever.
 WRAPPER = """
-import json, os, sys
+import faulthandler, json, os, sys
+faulthandler.dump_traceback_later(HANG_S, exit=True)
 import torch
 from lerobot_jept.policies.jept.modeling_jept import JEPTPolicy
 
@@ -33,12 +37,19 @@ JEPTPolicy.update = update_and_record
 from lerobot.scripts.lerobot_train import main
 sys.exit(main())
 """
+HANG_S = 600
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 @pytest.mark.slow
 def test_two_processes_stay_identical_across_phase_switches(tiny_build, tmp_path):
     wrapper = tmp_path / "train_and_record.py"
-    wrapper.write_text(WRAPPER)
+    wrapper.write_text(WRAPPER.replace("HANG_S", str(HANG_S)))
     ranks = tmp_path / "ranks"
     ranks.mkdir()
     steps = 6
@@ -50,6 +61,8 @@ def test_two_processes_stay_identical_across_phase_switches(tiny_build, tmp_path
         "--num_machines=1",
         "--mixed_precision=no",
         "--dynamo_backend=no",
+        "--main_process_ip=127.0.0.1",
+        f"--main_process_port={free_port()}",
         str(wrapper),
         f"--config_path={CONFIG}",
         f"--dataset.repo_id={MIX}",
@@ -62,7 +75,16 @@ def test_two_processes_stay_identical_across_phase_switches(tiny_build, tmp_path
         *TINY_TRAIN,
     ]
     env = {**os.environ, "RANKS_DIR": str(ranks), "CUDA_VISIBLE_DEVICES": "", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, env=env)
+    # Both ranks on this host: the rendezvous on a free loopback port, gloo's mesh over loopback.
+    env["GLOO_SOCKET_IFNAME"] = "lo"
+    try:
+        proc = subprocess.run(
+            cmd, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=HANG_S + 300
+        )
+    except subprocess.TimeoutExpired as e:  # the launcher itself hung: show what the ranks printed
+        pytest.fail(
+            f"accelerate launch still running after {e.timeout} s:\n{e.stdout!s:.3000}\n{e.stderr!s:.5000}"
+        )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     logs = {
         r: [json.loads(line) for line in (ranks / f"rank{r}.jsonl").read_text().splitlines()] for r in (0, 1)
