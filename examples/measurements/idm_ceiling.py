@@ -162,7 +162,7 @@ def embedding_frames(
         processed = pre(batch)
         _, obs, h_in = policy._encode_window(processed)
         prompt = policy.prompt(processed) if policy.prompt_active else None
-        pred_h, logits, _ = policy.model.predict(prompt, obs[:, :k], h_in, processed[OBS_STATE])
+        pred_h, logits, *_ = policy.model.predict(prompt, obs[:, :k], h_in, processed[OBS_STATE])
         h = h_in[:, -2:]  # (B, 2, N_obs, J): h_t, h_t+1; the last token of each is the self-state token
         parts = (state, h.flatten(1), h[:, :, -1].flatten(1), h[:, :, :-1].flatten(1))
         for name, part in zip(EMBEDDING_PARTS, parts, strict=True):

@@ -92,6 +92,12 @@ class JEPTConfig(VideoPolicyConfig):
             (cross-entropy against its own bin probabilities there), on every real frame, videos included.
             Its gradient reaches Gamma_state and what feeds it, not the inverse dynamics. The squared error
             alone fits the mean change, which can sit in another action's bins than any change the data hold.
+        bc_head_weight: not in the paper (0, off, by default). A second action head, behaviour cloning on the
+            predictor's hidden states of the o_t tokens (those that predict h_{t+1}, prompt in context), trained
+            with this weight on the demos' actions and on the video frames' actions as the inverse dynamics
+            reads them from the real next frame (its most likely bins, computed in the same step, as
+            ``jept-relabel`` labels a mix for BC+IDM). With it, control reads this head, not the inverse
+            dynamics of the predicted h_{t+1} or change. One action per step (``chunk_size`` 1).
         ema_decay: decay of the EMA target encoder (not given by the paper; I-JEPA's 0.996).
         phase_schedule: "alternate" (Algorithm 1: encoder-only phases and other-components phases) or "joint".
         phase_steps: optimizer steps per phase (Algorithm 1 alternates per epoch; its length in steps is not
@@ -134,6 +140,7 @@ class JEPTConfig(VideoPolicyConfig):
     n_action_steps: int = 1
     state_loss_weight: float = 1.0
     change_consistency_weight: float = 0.0
+    bc_head_weight: float = 0.0
     ema_decay: float = 0.996
     phase_schedule: str = "alternate"
     phase_steps: int = 1000
@@ -169,6 +176,7 @@ class JEPTConfig(VideoPolicyConfig):
             "chunk_size": (1, k, "1, n_obs_steps", "changes a window holds after its first frame"),
             "n_action_steps": (1, self.chunk_size, "1, chunk_size", "a chunk's actions run per prediction"),
             "change_consistency_weight": (0.0, float("inf"), "0, inf", "a loss weight"),
+            "bc_head_weight": (0.0, float("inf"), "0, inf", "a loss weight"),
         }
         for name, (low, high, bounds, why) in ranges.items():
             if not low <= value(name) <= high:
@@ -181,6 +189,11 @@ class JEPTConfig(VideoPolicyConfig):
                     f"{name}={value(name)} works with the self-state inverse dynamics only: add "
                     f"--policy.idm_input=self_state (or --policy.recipe=plus), or drop --policy.{name}."
                 )
+        if self.bc_head_weight and self.chunk_size != 1:
+            raise ValueError(
+                f"bc_head_weight={self.bc_head_weight} gives one action per step: drop --policy.chunk_size "
+                f"(got {self.chunk_size}) or --policy.bc_head_weight."
+            )
         if not 0.0 <= self.prompt_dropout < 1.0:
             raise ValueError(f"prompt_dropout is a probability in [0, 1), got {self.prompt_dropout}.")
         if self.prompt_guidance < 0:

@@ -101,6 +101,9 @@ class JEPT(VisualPolicyNet):
         else:
             self.action_head = make_action_head(config, config.predictor_dim)
 
+        # Behaviour cloning on the o_t hidden states (config.bc_head_weight): what control reads when it is on.
+        self.bc_head = make_action_head(config, config.predictor_dim) if config.bc_head_weight > 0 else None
+
         # Classifier-free guidance (config.prompt_dropout): the learned E_prt of "no prompt".
         self.null_prompt = (
             NullPrompt(config.prompt_perceiver_queries, config.perceiver_dim)
@@ -124,28 +127,31 @@ class JEPT(VisualPolicyNet):
     def heads(self) -> list[nn.Module]:
         """The predictor and its heads (the ``optimizer_lr_predictor`` group)."""
         gamma_act = self.action_head if self.state_dynamics is None else self.state_dynamics
-        return [self.predictor, self.obs_head, gamma_act]
+        bc = [] if self.bc_head is None else [self.bc_head]
+        return [self.predictor, self.obs_head, gamma_act, *bc]
 
     def frame_tokens(self, images: Tensor, state: Tensor) -> Tensor:
         return self.tokenize(self.encoder.tokenizer, self.backbone_tokens(images), state)
 
     def predict(
         self, prompt: Tensor | None, obs: Tensor, emb: Tensor, state: Tensor | None = None
-    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """Predicted joint embeddings (B, k, N, J) from the obs tokens, action logits (B, k, A, bins) and, with
-        ``idm_input="self_state"``, the predicted self-state changes (B, k, chunk_size, S) (else None). There
-        the inverse dynamics reads the real changes of ``state`` (B, k + 1, S), as the paper's reads the real
-        h_{t+1} (no logits without it)."""
+    ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
+        """Predicted joint embeddings (B, k, N, J) from the obs tokens, action logits (B, k, A, bins), with
+        ``idm_input="self_state"`` the predicted self-state changes (B, k, chunk_size, S) (else None), and with
+        ``bc_head_weight`` the BC head's logits (B, k, A, bins) from the o_t hidden states (else None). With the
+        self-state the inverse dynamics reads the real changes of ``state`` (B, k + 1, S), as the paper's reads
+        the real h_{t+1} (no logits without it)."""
         z_obs, z_emb = self.predictor(prompt, obs, emb)
         pred_h = self.obs_head(z_obs)
+        bc = None if self.bc_head is None else self.bc_head(z_obs)
         sd = self.state_dynamics
         if sd is None:
-            return pred_h, self.action_head(z_emb), None
+            return pred_h, self.action_head(z_emb), None, bc
         k = obs.shape[1]
         if state is None:
-            return pred_h, None, sd.predict_changes(z_obs)
+            return pred_h, None, sd.predict_changes(z_obs), bc
         logits = sd(state[:, :k], sd.change_of(state[:, : k + 1]), sd.past_changes(state[:, :k]))
-        return pred_h, logits, sd.predict_changes(z_obs)
+        return pred_h, logits, sd.predict_changes(z_obs), bc
 
     @torch.no_grad()
     def update_target(self, decay: float) -> None:
@@ -207,7 +213,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         if self.training and m.state_dynamics is not None:
             m.state_dynamics.update_scale(batch[OBS_STATE])
         prompt_in, kept = self._prompt_dropout(prompt)
-        pred_h, logits, change = m.predict(prompt_in, obs[:, :k], h_in, batch[OBS_STATE])
+        pred_h, logits, change, bc = m.predict(prompt_in, obs[:, :k], h_in, batch[OBS_STATE])
         loss_obs, dist, frame_ok = self._obs_loss(batch, pred_h, targets)
 
         # L_act (eq. 8): cross-entropy over the bins on labelled frames only (with ``idm_history`` h, not on the
@@ -227,6 +233,10 @@ class JEPTPolicy(DiscreteActionPolicy):
                 consistency = self._change_consistency(batch[OBS_STATE], change[:, :, 0], logits, ok[..., 0])
                 extra = extra + cfg.change_consistency_weight * consistency
                 extra_info["loss_consistency"] = consistency.mean().item()
+        if bc is not None:
+            loss_bc = self._bc_loss(batch, bc, logits, frame_ok)
+            extra = extra + cfg.bc_head_weight * loss_bc
+            extra_info["loss_bc"] = loss_bc.mean().item()
         per_sample = per_sample + extra
         info = {
             "loss_obs": loss_obs.mean().item(),
@@ -306,6 +316,19 @@ class JEPTPolicy(DiscreteActionPolicy):
         ce = F.cross_entropy(logits.movedim(-1, 1), target, reduction="none").mean(-1)  # (B, k)
         return frame_mean(ce[:, sd.history :], ok[:, sd.history :])
 
+    def _bc_loss(self, batch: dict[str, Tensor], bc: Tensor, inverse: Tensor, frame_ok: Tensor) -> Tensor:
+        """``bc_head_weight``'s term -> per sample (B,): the BC head's cross-entropy (``bc``, logits (B, k, A,
+        bins)) against the demos' actions and, on the frames without one whose next frame is real
+        (``frame_ok``, (B, k)), the bins the inverse dynamics reads from the real next frame (``inverse``); not
+        on the window's first ``idm_history`` frames, whose inverse dynamics lacks its past changes."""
+        labels = self.action_labels(batch, bc.shape[:3])
+        pseudo = inverse.detach().argmax(-1)
+        unlabelled = (labels == IGNORE_INDEX) & frame_ok.bool()[..., None]
+        labels = torch.where(unlabelled, pseudo, labels)
+        labels[:, : self.config.idm_history] = IGNORE_INDEX
+        ce = F.cross_entropy(bc.movedim(-1, 1), labels, ignore_index=IGNORE_INDEX, reduction="none")
+        return frame_mean(ce.mean(-1), (labels != IGNORE_INDEX)[..., 0].float())
+
     def _obs_loss(self, batch: dict[str, Tensor], pred_h: Tensor, targets: Tensor) -> tuple[Tensor, ...]:
         """L_obs (eq. 7): the L2 distance per token between predicted and target joint embeddings, averaged
         over tokens and over the frames whose target is real -> per sample (B,), with the per-frame distances
@@ -325,7 +348,7 @@ class JEPTPolicy(DiscreteActionPolicy):
         tokens, obs, h_in = self._encode_window(batch)
         targets = self._targets(batch, tokens)
         prompt = self.prompt(batch) if self.prompt_active else None
-        pred_h, logits, _ = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
+        pred_h, logits, *_ = m.predict(prompt, obs[:, :k], h_in, batch[OBS_STATE])
         states = batch[OBS_STATE][:, :k]
         return {
             "control": self._control_logits(prompt, obs[:, :k], h_in[:, : k - 1], states)[:, 0],
@@ -397,11 +420,15 @@ class JEPTPolicy(DiscreteActionPolicy):
                 if cached is None or cached[0] is not prompt:
                     cached = self._prompt_kv[role] = (prompt, m.predictor.prompt_kv(p))
                 kv = cached[1]
+                if m.bc_head is not None:
+                    return m.bc_head(m.predictor.last_obs_hidden(kv, obs, h_past)[:, None])[:, 0]
                 if m.state_dynamics is not None:
                     return m.state_dynamics.predict_changes(m.predictor.last_obs_hidden(kv, obs, h_past))
                 hidden = m.predictor.forward_last_step(kv, obs, h_past, m.obs_head)
                 return m.action_head(hidden[:, None])[:, 0]
             # the reference: full passes; for Gamma_act, h_{t+1} predicted by the first and fed into the second
+            if m.bc_head is not None:
+                return m.bc_head(m.predictor(p, obs, h_past)[0][:, -1:])[:, 0]
             if m.state_dynamics is not None:
                 return m.state_dynamics.predict_changes(m.predictor(p, obs, h_past)[0][:, -1])
             placeholder = torch.zeros_like(obs[:, :1, :, : cfg.joint_embedding_dim])
@@ -413,4 +440,4 @@ class JEPTPolicy(DiscreteActionPolicy):
             null = None if m.null_prompt is None else m.null_prompt(prompt)
             x = x + cfg.prompt_guidance * (x - predicted(null, "null"))
         sd = m.state_dynamics
-        return x[:, None] if sd is None else sd.chunk_logits(states, x)
+        return x[:, None] if sd is None or m.bc_head is not None else sd.chunk_logits(states, x)

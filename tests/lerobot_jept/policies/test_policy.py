@@ -306,8 +306,8 @@ def test_save_and_reload_gives_identical_outputs_and_processors(policy_and_batch
 
 @pytest.mark.parametrize(
     "overrides",
-    [{}, {"recipe": "paper"}, {"prompt_dropout": 0.2, "prompt_guidance": 1.0}],
-    ids=["plus", "paper", "guided"],
+    [{}, {"recipe": "paper"}, {"prompt_dropout": 0.2, "prompt_guidance": 1.0}, {"bc_head_weight": 8.0}],
+    ids=["plus", "paper", "guided", "bc_head"],
 )
 def test_cached_and_uncached_control_give_the_same_actions(tiny_build, overrides):
     """The cached control (frame tokens, the prompt's layer inputs, the last layer on o_t alone) gives the logits
@@ -581,6 +581,60 @@ def test_change_consistency_trains_the_change_predictor_not_the_inverse_dynamics
         tiny_config(idm_input="self_state", change_consistency_weight=-1.0)
     with pytest.raises(ValueError, match="add --policy.idm_input=self_state"):
         tiny_config(idm_input="embedding", change_consistency_weight=1.0)
+
+
+@pytest.mark.parametrize("recipe", ["plus", "paper"])
+def test_bc_head_learns_demo_and_relabelled_video_actions_and_is_what_control_reads(tiny_build, recipe):
+    """bc_head_weight: the BC head's cross-entropy is against the demo's action on a labelled frame and against
+    the inverse dynamics' most likely bins from the real next frame on a video frame (none on a padded next
+    frame, none on the history's frames), its gradient never reaches the inverse dynamics' logits, it falls
+    when training, and control (online and offline) executes the BC head's bins, not the inverse dynamics'."""
+    history = 1 if recipe == "plus" else 0
+    policy, pre, _ = build_policy(tiny_build, recipe=recipe, idm_history=history, bc_head_weight=1.0)
+    k, bins = policy.config.n_obs_steps, policy.config.num_action_bins
+    batch = pre(mixed_batch(policy.config, size=4, seed=3))
+    labels = policy.action_labels(batch, torch.Size([4, k, 4]))
+    assert (labels == IGNORE_INDEX).any() and (labels != IGNORE_INDEX).any()
+    bc = torch.randn(4, k, 4, bins, requires_grad=True)
+    inverse = torch.randn(4, k, 4, bins, requires_grad=True)
+    ok = torch.ones(4, k)
+    ok[:, -1] = 0.0  # padded next frames
+    term = policy._bc_loss(batch, bc, inverse, ok)
+
+    by_hand = torch.zeros(4)
+    for b in range(4):
+        targets = {}
+        for t in range(history, k):
+            if labels[b, t, 0] != IGNORE_INDEX:
+                targets[t] = labels[b, t]
+            elif ok[b, t]:
+                targets[t] = inverse[b, t].argmax(-1)
+        for t, target in targets.items():
+            by_hand[b] += torch.nn.functional.cross_entropy(bc[b, t], target) / len(targets)
+    torch.testing.assert_close(term, by_hand)
+    term.sum().backward()
+    assert bc.grad.abs().sum() > 0 and inverse.grad is None
+
+    first, info = overfit(policy, pre)
+    assert info["loss_bc"] < 0.5 * first["loss_bc"]
+    policy.eval()
+    out = policy.model.bc_head.out[-1]  # every dimension's logits favour bin 5, whatever the input
+    with torch.no_grad():
+        out.weight.zero_()
+        out.bias.copy_(torch.nn.functional.one_hot(torch.tensor(5), bins).float())
+    policy.reset()
+    obs = {key: batch[key][:, k - 1] for key in ("observation.image", "observation.state")}
+    action = policy.select_action({**obs, PROMPT_VIDEO: batch[PROMPT_VIDEO]})
+    torch.testing.assert_close(action, policy.bin_actions(torch.full((4, 4), 5)))
+    assert (policy.offline_outputs(batch)["control"].argmax(-1) == 5).all()
+    assert not (policy.offline_outputs(batch)["inverse"].argmax(-1) == 5).all()
+
+    off = build_policy(tiny_build, recipe=recipe)[0]
+    assert off.model.bc_head is None and "loss_bc" not in off.forward(batch)[1]
+    with pytest.raises(ValueError, match="bc_head_weight must be in"):
+        tiny_config(bc_head_weight=-1.0)
+    with pytest.raises(ValueError, match="drop --policy.chunk_size"):
+        tiny_config(bc_head_weight=1.0, chunk_size=2)
 
 
 def test_idm_input_must_be_known():
