@@ -13,6 +13,7 @@ build's ``ORG/NAME_probe`` repo, or on ``--probe_repo_id``; ``--probe=false`` sk
         --n_episodes=50 --output_dir=outputs/suite
 """
 
+import dataclasses
 import json
 import logging
 import sys
@@ -253,6 +254,41 @@ def evaluate_task(
     return json.loads((out / "eval_info.json").read_text())
 
 
+TASK_FILE = "suite_task.json"  # per task folder: the settings it was evaluated under and its result
+
+
+def run_settings(cfg: SuiteConfig, build: dict, prompt_repo_id: str) -> dict:
+    """What a task's rollouts depend on besides the task itself: the checkpoint's weights (their hash, so a
+    retrained checkpoint at the same path is evaluated again), the command line's policy overrides, the
+    build, prompt bank, episodes, env seeds and episode length."""
+    import hashlib
+
+    weights = Path(cfg.policy.path) / "model.safetensors"
+    digest = hashlib.sha256(weights.read_bytes()).hexdigest() if weights.is_file() else cfg.policy.path
+    return {
+        "weights": digest,
+        "policy_overrides": {k: v for k, v in dataclasses.asdict(cfg.policy).items() if k != "path"},
+        "dataset": cfg.dataset.repo_id,
+        "build_protocol": build.get("protocol"),
+        "prompt_repo_id": prompt_repo_id,
+        "n_episodes": cfg.n_episodes,
+        "batch_size": cfg.batch_size,
+        "seed": cfg.seed,
+        "episode_length": cfg.episode_length,
+    }
+
+
+def finished_task(folder: Path, stamp: dict) -> dict | None:
+    """The result of a task evaluated before under the same settings (a suite run again into the same
+    ``--output_dir`` picks up where it stopped, and adding ``--scene_mate_prompts`` runs only the new rows);
+    None when it must be evaluated."""
+    path = folder / TASK_FILE
+    if not path.is_file():
+        return None
+    done = json.loads(path.read_text())
+    return done["result"] if done.get("settings") == json.loads(json.dumps(stamp)) else None
+
+
 def run_suite(cfg: SuiteConfig) -> dict:
     if not cfg.policy.path or not cfg.dataset.repo_id:
         raise SuiteError("Pass both --policy.path=CHECKPOINT and --dataset.repo_id=ORG/NAME_mix.")
@@ -282,18 +318,23 @@ def run_suite(cfg: SuiteConfig) -> dict:
         runs += [(t, "video", mate) for t, mate in scene_mate_of(build, split["video"]).items()]
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    settings = run_settings(cfg, build, prompt_repo_id)
     per_task = {}
     for task, role, mate in tqdm(runs, desc="suite tasks", unit="task"):
         folder = out / "tasks" / (task if mate is None else f"{task}.prompt_{mate}")
-        info = evaluate_task(cfg, task, build, prompt_repo_id, folder, prompt_task=mate)
-        overall = info["overall"]
-        result = {
-            "split": role,
-            "pc_success": float(overall["pc_success"]),
-            "n_episodes": int(overall["n_episodes"]),
-            "successes": [bool(s) for t in info["per_task"] for s in t["metrics"]["successes"]],
-            "eval_info": str(folder / "eval_info.json"),
-        }
+        stamp = {**settings, "task": task, "prompt_task": mate}
+        result = finished_task(folder, stamp)
+        if result is None:
+            info = evaluate_task(cfg, task, build, prompt_repo_id, folder, prompt_task=mate)
+            overall = info["overall"]
+            result = {
+                "split": role,
+                "pc_success": float(overall["pc_success"]),
+                "n_episodes": int(overall["n_episodes"]),
+                "successes": [bool(s) for t in info["per_task"] for s in t["metrics"]["successes"]],
+                "eval_info": str(folder / "eval_info.json"),
+            }
+            (folder / TASK_FILE).write_text(json.dumps({"settings": stamp, "result": result}, indent=2))
         if mate is None:
             per_task[task] = result
         else:

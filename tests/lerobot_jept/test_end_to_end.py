@@ -265,6 +265,39 @@ def test_eval_suite_writes_table_and_chart(trained):
     assert "| T_demo |" in (suite / "results.md").read_text() and "| T_demo |" in log
 
 
+@pytest.mark.slow
+def test_eval_suite_picks_up_the_tasks_it_finished_under_the_same_settings(trained):
+    tmp, out, _ = trained
+    suite = tmp / "suite_resume"
+    args = [
+        "jept-eval-suite",
+        f"--policy.path={out}/checkpoints/last/pretrained_model",
+        f"--dataset.repo_id={MIX}",
+        "--n_episodes=1",
+        "--batch_size=1",
+        "--episode_length=10",
+        "--splits=[video]",
+        "--probe=false",
+        f"--output_dir={suite}",
+    ]
+    info = suite / "tasks/drawer-close-v3/eval_info.json"
+
+    def evaluated(*extra: str) -> tuple[int, dict]:
+        run([*args, *extra], tmp)
+        return info.stat().st_mtime_ns, json.loads((suite / "results.json").read_text())["per_task"]
+
+    first, results = evaluated()
+    again, reused = evaluated()
+    assert (
+        again == first and reused == results
+    )  # the same settings: the finished task is not rolled out again
+    moved, _ = evaluated("--seed=7")
+    assert moved != first  # other env seeds: evaluated again
+    stamp = json.loads((suite / "tasks/drawer-close-v3/suite_task.json").read_text())
+    assert stamp["settings"]["seed"] == 7 and stamp["settings"]["prompt_task"] is None
+    assert len(stamp["settings"]["weights"]) == 64  # the checkpoint's weights by their hash, not its path
+
+
 def test_env_features_match_the_dataset(tiny_build):
     env_cfg = JeptMetaworldEnvConfig(task="handle-press-v3", image_size=64)
     env_features = env_to_policy_features(env_cfg)
