@@ -464,11 +464,14 @@ class DiscreteActionPolicy(PreTrainedPolicy):
         labels[(labels == IGNORE_INDEX).any(-1)] = IGNORE_INDEX  # a frame is labelled in full or not at all
         return labels
 
-    def action_loss(self, logits: Tensor, batch: dict[str, Tensor], first: int = 0) -> tuple[Tensor, Tensor]:
+    def action_loss(
+        self, logits: Tensor, batch: dict[str, Tensor], first: int = 0, labels: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Cross-entropy over the bins of logits (B, T, A, bins) on labelled frames only (eq. 8), from frame
         ``first`` on -> per-sample loss (B,) (mean over the sample's labelled frames, 0 without any) and the
-        labelled mask (B, T, A)."""
-        labels = self.action_labels(batch, logits.shape[:3])
+        labelled mask (B, T, A). The labels are the batch's (:meth:`action_labels`) unless ``labels`` gives
+        others (B, T, A), IGNORE_INDEX where there is none."""
+        labels = self.action_labels(batch, logits.shape[:3]) if labels is None else labels.clone()
         labels[:, :first] = IGNORE_INDEX
         ce = F.cross_entropy(
             rearrange(logits, "b t a c -> b c t a"), labels, ignore_index=IGNORE_INDEX, reduction="none"

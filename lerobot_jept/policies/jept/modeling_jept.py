@@ -322,12 +322,9 @@ class JEPTPolicy(DiscreteActionPolicy):
         (``frame_ok``, (B, k)), the bins the inverse dynamics reads from the real next frame (``inverse``); not
         on the window's first ``idm_history`` frames, whose inverse dynamics lacks its past changes."""
         labels = self.action_labels(batch, bc.shape[:3])
-        pseudo = inverse.detach().argmax(-1)
         unlabelled = (labels == IGNORE_INDEX) & frame_ok.bool()[..., None]
-        labels = torch.where(unlabelled, pseudo, labels)
-        labels[:, : self.config.idm_history] = IGNORE_INDEX
-        ce = F.cross_entropy(bc.movedim(-1, 1), labels, ignore_index=IGNORE_INDEX, reduction="none")
-        return frame_mean(ce.mean(-1), (labels != IGNORE_INDEX)[..., 0].float())
+        labels = torch.where(unlabelled, inverse.detach().argmax(-1), labels)
+        return self.action_loss(bc, batch, first=self.config.idm_history, labels=labels)[0]
 
     def _obs_loss(self, batch: dict[str, Tensor], pred_h: Tensor, targets: Tensor) -> tuple[Tensor, ...]:
         """L_obs (eq. 7): the L2 distance per token between predicted and target joint embeddings, averaged
