@@ -264,7 +264,10 @@ def run_settings(cfg: SuiteConfig, build: dict, prompt_repo_id: str) -> dict:
     import hashlib
 
     weights = Path(cfg.policy.path) / "model.safetensors"
-    digest = hashlib.sha256(weights.read_bytes()).hexdigest() if weights.is_file() else cfg.policy.path
+    digest = cfg.policy.path
+    if weights.is_file():
+        with weights.open("rb") as f:  # streamed, not read whole into memory
+            digest = hashlib.file_digest(f, "sha256").hexdigest()
     return {
         "weights": digest,
         "policy_overrides": {k: v for k, v in dataclasses.asdict(cfg.policy).items() if k != "path"},

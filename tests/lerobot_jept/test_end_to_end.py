@@ -288,9 +288,8 @@ def test_eval_suite_picks_up_the_tasks_it_finished_under_the_same_settings(train
 
     first, results = evaluated()
     again, reused = evaluated()
-    assert (
-        again == first and reused == results
-    )  # the same settings: the finished task is not rolled out again
+    # the same settings: the finished task is not rolled out again
+    assert again == first and reused == results
     moved, _ = evaluated("--seed=7")
     assert moved != first  # other env seeds: evaluated again
     stamp = json.loads((suite / "tasks/drawer-close-v3/suite_task.json").read_text())
