@@ -3,13 +3,13 @@ read, before any policy is trained.
 
     jept-screen --probe_repo_id=local/t_probe \\
         --arms='{demos: [local/t_demo], demos + play: [local/t_demo, local/t_play]}' [--steps=1] [--history=0] \\
-        [--seeds='[0,1,2]']
+        [--smooth=0] [--seeds='[0,1,2]']
 
 JEPT (and BC+IDM) act on a task seen only as video through inverse dynamics learned from labelled frames
 (P(a_t | s_t, s_t+1)). Whether a change to the labelled data (play episodes, random expert actions, more demo
 tasks) or to the inverse dynamics' input (``--steps``: the next ``steps`` self-state changes; ``--history``: the
-``history`` changes before t as well) can help is a
-property of the data, measured here in minutes: per arm (a list of labelled repos), an MLP on the true
+``history`` changes before t as well) or to its readings (``--smooth``: a majority over each episode's
+neighbouring frames) can help is a property of the data, measured here in minutes: per arm (a list of labelled repos), an MLP on the true
 self-state changes is fitted on every labelled frame of the arm's repos, once per seed, and scored on the
 held-out labelled episodes of ``--probe_repo_id`` (a build's ``_probe``). Per probe task and arm it reports
 
@@ -26,6 +26,7 @@ perfectly predicted next state: what a trained checkpoint reaches is measured by
 
 import json
 import logging
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +46,7 @@ class ScreenConfig:
     root: Path | None = None  # parent folder of every repo (default: $HF_LEROBOT_HOME)
     steps: int = 1  # self-state changes after t given to the model (1 = the next frame only)
     history: int = 0  # self-state changes before t given as well (the arm's lag behind its commanded motion)
+    smooth: int = 0  # score a per-dimension majority over this many readings each side, within each episode
     with_state: bool = False  # also give the model s_t itself, as JEPT's self-state inverse dynamics has it
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])  # one fitted model per seed and arm
     num_bins: int = 7  # action bins per dimension over [-1, 1] (the paper's 7)
@@ -68,7 +70,7 @@ def load_frames(
     """Every frame t with ``history`` frames before it and ``steps`` after it in its episode: the ``history``
     self-state changes up to s_t, then the ``steps`` after it (preceded by s_t itself with ``with_state``; or,
     for ``pixels``, the uint8 frames o_t .. o_t+steps stacked on the channels), binned action, task (the
-    builder's task name where the repo has build metadata, else the task string)."""
+    builder's task name where the repo has build metadata, else the task string), episode index in its repo."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     dataset = LeRobotDataset(repo_id, root=None if root is None else root / repo_id)
@@ -88,7 +90,7 @@ def load_frames(
     image_key = next((k for k, f in dataset.meta.features.items() if f["dtype"] in ("video", "image")), None)
     if features == "pixels" and image_key is None:
         raise ScreenError(f"{repo_id} has no camera frames: use --features=state.")
-    inputs, labels, frame_tasks = [], [], []
+    inputs, labels, frame_tasks, frame_episodes = [], [], [], []
     for ep in tqdm(np.unique(episode), desc=f"{repo_id} episodes", unit="ep", leave=False):
         rows = np.flatnonzero(episode == ep)
         starts = range(history, len(rows) - steps)
@@ -104,18 +106,50 @@ def load_frames(
         for t in starts:
             labels.append(to_bin_indices(action[rows[t]], num_bins))
             frame_tasks.append(task_of[int(task_index[rows[t]])])
-    return {"x": np.array(inputs), "y": np.array(labels), "task": np.array(frame_tasks)}
+            frame_episodes.append(int(ep))
+    return {
+        "x": np.array(inputs),
+        "y": np.array(labels),
+        "task": np.array(frame_tasks),
+        "episode": np.array(frame_episodes),
+    }
 
 
 def concat_frames(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    return {key: np.concatenate([p[key] for p in parts]) for key in ("x", "y", "task")}
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def majority(labels: np.ndarray, k: int) -> np.ndarray:
+    """Per dimension, the most common bin among the ``k`` frames either side of each frame (one episode's
+    (T, D) labels; ties go to the bin seen first)."""
+    out = np.empty_like(labels)
+    for t in range(len(labels)):
+        window = labels[max(0, t - k) : t + k + 1]
+        out[t] = [Counter(window[:, d].tolist()).most_common(1)[0][0] for d in range(labels.shape[1])]
+    return out
+
+
+def smoothed(predicted: np.ndarray, episode: np.ndarray, k: int) -> np.ndarray:
+    """:func:`majority` over each episode's run of frames in ``predicted`` (N, D); ``k = 0`` returns it as is."""
+    if k == 0:
+        return predicted
+    out = predicted.copy()
+    for ep in np.unique(episode):
+        rows = np.flatnonzero(episode == ep)
+        out[rows] = majority(predicted[rows], k)
+    return out
 
 
 def state_ceiling(
-    train: dict[str, np.ndarray], probe: dict[str, np.ndarray], seed: int = 0, epochs: int = 40
+    train: dict[str, np.ndarray],
+    probe: dict[str, np.ndarray],
+    seed: int = 0,
+    epochs: int = 40,
+    smooth: int = 0,
 ) -> dict[str, dict]:
     """Per probe task: :func:`score` of an MLP inverse dynamics fitted on ``train`` (standardised inputs, two
-    hidden layers of 128, one softmax over the bins per action dimension, cross-entropy, ``epochs`` passes)."""
+    hidden layers of 128, one softmax over the bins per action dimension, cross-entropy, ``epochs`` passes),
+    its readings :func:`smoothed` over ``smooth`` frames each side within each probe episode."""
     import torch
     from torch import nn
 
@@ -146,7 +180,8 @@ def state_ceiling(
     for d in range(dims):  # a dimension the labelled frames never move (the gripper of some tasks): that bin
         if len(set(train["y"][:, d])) == 1:
             predicted[:, d] = train["y"][0, d]
-    return score(predicted.astype(train["y"].dtype), train["y"], probe)
+    predicted = smoothed(predicted.astype(train["y"].dtype), probe["episode"], smooth)
+    return score(predicted, train["y"], probe)
 
 
 def score(predicted: np.ndarray, train_labels: np.ndarray, probe: dict[str, np.ndarray]) -> dict[str, dict]:
@@ -190,6 +225,7 @@ def screen(cfg: ScreenConfig) -> dict:
         "steps": cfg.steps,
         "with_state": cfg.with_state,
         "history": cfg.history,
+        "smooth": cfg.smooth,
         "seeds": cfg.seeds,
         "arms": {},
     }
@@ -199,7 +235,7 @@ def screen(cfg: ScreenConfig) -> dict:
             keep = rng.choice(len(train["x"]), cfg.max_frames, replace=False)
             train = {key: value[keep] for key, value in train.items()}
         runs = [
-            state_ceiling(train, probe, seed)
+            state_ceiling(train, probe, seed, smooth=cfg.smooth)
             for seed in tqdm(cfg.seeds, desc=f"fitting {arm}", unit="seed", leave=False)
         ]
         per_task = {}
@@ -237,7 +273,7 @@ def markdown(results: dict) -> str:
         f"Inverse dynamics on the next {results['steps']} self-state change(s)"
         f"{' and s_t' if results.get('with_state') else ''}"
         f"{f' after the {h} before it' if (h := results.get('history')) else ''}, fitted per arm on its labelled "
-        f"frames, scored on {results['probe_repo_id']}; whole-action accuracy, mean [95% interval] over seeds "
+        f"frames{f', readings smoothed by a majority over {k} frame(s) each side' if (k := results.get('smooth')) else ''}, scored on {results['probe_repo_id']}; whole-action accuracy, mean [95% interval] over seeds "
         f"{results['seeds']} (share of frames whose action the arm's labels contain).",
         "",
         "| task | split | frames | " + " | ".join(arms) + " |",
@@ -311,6 +347,10 @@ def main(args: list[str] | None = None) -> None:
     if cfg.history < 0:
         raise SystemExit(
             f"jept-screen: error: --history must be 0 or more (changes before t), got {cfg.history}."
+        )
+    if cfg.smooth < 0:
+        raise SystemExit(
+            f"jept-screen: error: --smooth must be 0 or more (frames each side), got {cfg.smooth}."
         )
     if not cfg.seeds:
         raise SystemExit("jept-screen: error: --seeds must name at least one seed.")
