@@ -130,9 +130,7 @@ def majority(labels: np.ndarray, k: int) -> np.ndarray:
 
 
 def smoothed(predicted: np.ndarray, episode: np.ndarray, k: int) -> np.ndarray:
-    """:func:`majority` over each episode's run of frames in ``predicted`` (N, D); ``k = 0`` returns it as is."""
-    if k == 0:
-        return predicted
+    """:func:`majority` over each episode's run of frames in ``predicted`` (N, D)."""
     out = predicted.copy()
     for ep in np.unique(episode):
         rows = np.flatnonzero(episode == ep)
@@ -180,7 +178,9 @@ def state_ceiling(
     for d in range(dims):  # a dimension the labelled frames never move (the gripper of some tasks): that bin
         if len(set(train["y"][:, d])) == 1:
             predicted[:, d] = train["y"][0, d]
-    predicted = smoothed(predicted.astype(train["y"].dtype), probe["episode"], smooth)
+    predicted = predicted.astype(train["y"].dtype)
+    if smooth:
+        predicted = smoothed(predicted, probe["episode"], smooth)
     return score(predicted, train["y"], probe)
 
 
