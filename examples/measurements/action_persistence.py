@@ -16,9 +16,7 @@ from pathlib import Path
 import draccus
 import numpy as np
 
-from lerobot_jept.evaluation.prompt_probe import task_names
-from lerobot_jept.evaluation.screen import majority
-from lerobot_jept.policies.discretization import to_bin_indices
+from lerobot_jept.evaluation.screen import ScreenError, load_frames, majority
 
 
 @dataclass
@@ -30,21 +28,12 @@ class PersistenceConfig:
 
 
 def persistence(cfg: PersistenceConfig) -> dict[str, dict[str, float]]:
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    dataset = LeRobotDataset(cfg.repo_id, root=None if cfg.root is None else cfg.root / cfg.repo_id)
-    if "action" not in dataset.meta.features:
-        raise SystemExit(f"{cfg.repo_id} has no `action` column: pass a labelled repo (`_probe`, `_demo`).")
-    names = task_names(dataset.meta) or {}
-    tasks = dataset.meta.tasks
-    task_of = {int(i): names.get(t, t) for t, i in zip(tasks.index, tasks["task_index"], strict=True)}
-    table = dataset.hf_dataset.with_format("numpy", columns=["episode_index", "action", "task_index"])[:]
-    episode, action = table["episode_index"], np.stack(table["action"])
+    frames = load_frames(cfg.repo_id, cfg.root, steps=0, num_bins=cfg.num_bins)  # every frame's binned action
     per_task: dict[str, dict[str, list[float]]] = {}
-    for ep in np.unique(episode):
-        rows = np.flatnonzero(episode == ep)
-        labels = np.stack([to_bin_indices(a, cfg.num_bins) for a in action[rows]])
-        shares = per_task.setdefault(task_of[int(table["task_index"][rows[0]])], {})
+    for ep in np.unique(frames["episode"]):
+        rows = np.flatnonzero(frames["episode"] == ep)
+        labels = frames["y"][rows]
+        shares = per_task.setdefault(str(frames["task"][rows[0]]), {})
         shares.setdefault("repeats", []).append(float((labels[1:] == labels[:-1]).all(1).mean()))
         for k in cfg.windows:
             kept = (majority(labels, k) == labels).all(1).mean()
@@ -54,7 +43,10 @@ def persistence(cfg: PersistenceConfig) -> dict[str, dict[str, float]]:
 
 def main() -> None:
     cfg = draccus.parse(config_class=PersistenceConfig)
-    results = persistence(cfg)
+    try:
+        results = persistence(cfg)
+    except ScreenError as err:  # an unlabelled repo: the error names it and the fix
+        raise SystemExit(f"action_persistence: error: {err}") from None
     columns = list(next(iter(results.values())))
     print("| task | " + " | ".join(columns) + " |")
     print("|---|" + "---|" * len(columns))
